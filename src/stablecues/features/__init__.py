@@ -1,0 +1,1 @@
+"""Binary local features behind one :class:`Extractor` protocol."""

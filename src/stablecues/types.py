@@ -1,0 +1,174 @@
+"""Small frozen dataclasses shared by every stage.
+
+Arrays inside these objects are never modified in place by stablecues; treat them as read-only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError, check_array
+
+DESCRIPTOR_BYTES = 32  # ORB / BRIEF-256
+
+
+@dataclass(frozen=True)
+class Features:
+    """Local binary features of one image.
+
+    Attributes:
+        keypoints: (N, 2) float32 pixel coordinates (x, y) in the full-resolution image.
+        descriptors: (N, 32) uint8 binary descriptors (256 bits).
+        octaves: (N,) int16 pyramid level each keypoint was found at.
+        angles: (N,) float32 orientation in degrees, as OpenCV gives it.
+        responses: (N,) float32 corner response (higher is stronger).
+        sizes: (N,) float32 diameter of the keypoint's patch in pixels.
+        image_size: (width, height) of the image the features come from.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    octaves: np.ndarray
+    angles: np.ndarray
+    responses: np.ndarray
+    sizes: np.ndarray
+    image_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        check_array("keypoints", self.keypoints, dtype=np.float32, shape=(None, 2))
+        n = self.keypoints.shape[0]
+        check_array("descriptors", self.descriptors, dtype=np.uint8, shape=(n, DESCRIPTOR_BYTES))
+        for name in ("octaves", "angles", "responses", "sizes"):
+            arr = getattr(self, name)
+            check_array(name, arr, shape=(n,))
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    @staticmethod
+    def empty(image_size: tuple[int, int]) -> Features:
+        """Features with zero keypoints, correctly shaped."""
+        return Features(
+            keypoints=np.zeros((0, 2), np.float32),
+            descriptors=np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
+            octaves=np.zeros(0, np.int16),
+            angles=np.zeros(0, np.float32),
+            responses=np.zeros(0, np.float32),
+            sizes=np.zeros(0, np.float32),
+            image_size=image_size,
+        )
+
+    def subset(self, index: np.ndarray) -> Features:
+        """Features selected by a boolean mask or an integer index array."""
+        index = np.asarray(index)
+        if index.dtype == bool and index.shape != (len(self),):
+            raise InputError(f"mask: expected shape ({len(self)},), got {index.shape}")
+        return Features(
+            keypoints=self.keypoints[index],
+            descriptors=self.descriptors[index],
+            octaves=self.octaves[index],
+            angles=self.angles[index],
+            responses=self.responses[index],
+            sizes=self.sizes[index],
+            image_size=self.image_size,
+        )
+
+
+@dataclass(frozen=True)
+class BowVector:
+    """Sparse bag-of-words vector.
+
+    Attributes:
+        words: (M,) int32 word ids, sorted ascending and unique.
+        weights: (M,) float64 weights, normalised as the vocabulary's scoring asks.
+    """
+
+    words: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_array("bow words", self.words, dtype=np.int32, ndim=1)
+        check_array("bow weights", self.weights, dtype=np.float64, shape=(self.words.shape[0],))
+
+    def __len__(self) -> int:
+        return int(self.words.shape[0])
+
+    @staticmethod
+    def empty() -> BowVector:
+        return BowVector(np.zeros(0, np.int32), np.zeros(0, np.float64))
+
+    def as_dict(self) -> dict[int, float]:
+        return {int(w): float(v) for w, v in zip(self.words, self.weights, strict=True)}
+
+
+@dataclass(frozen=True)
+class FeatureVector:
+    """Direct index of one image: the vocabulary node each feature falls under.
+
+    DBoW2 stores ``node -> [feature indices]`` at ``levels_up`` levels above the leaves; the
+    same information is kept here per feature, which is more compact, and grouped on demand.
+
+    Attributes:
+        nodes: (N,) int32 node id of each feature at the direct-index level (-1: none).
+        levels_up: how many levels above the leaves the nodes are taken.
+    """
+
+    nodes: np.ndarray
+    levels_up: int
+
+    def __post_init__(self) -> None:
+        check_array("feature-vector nodes", self.nodes, dtype=np.int32, ndim=1)
+
+    def __len__(self) -> int:
+        return int(self.nodes.shape[0])
+
+    def groups(self) -> dict[int, np.ndarray]:
+        """``node id -> (K,) int64 indices of the features under it``, in feature order."""
+        if self.nodes.size == 0:
+            return {}
+        order = np.argsort(self.nodes, kind="stable")
+        sorted_nodes = self.nodes[order]
+        cuts = np.flatnonzero(np.diff(sorted_nodes)) + 1
+        starts = np.concatenate(([0], cuts))
+        ends = np.concatenate((cuts, [order.size]))
+        return {
+            int(sorted_nodes[s]): order[s:e]
+            for s, e in zip(starts, ends, strict=True)
+            if sorted_nodes[s] >= 0
+        }
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """One database hit: the entry id and its similarity score (higher is more similar)."""
+
+    entry_id: int
+    score: float
+
+
+@dataclass(frozen=True)
+class Entry:
+    """Everything a database keeps about one image.
+
+    Attributes:
+        entry_id: id given by the database (0, 1, 2, ... in insertion order).
+        bow: the image's bag-of-words vector.
+        fvec: the image's direct index.
+        features: keypoints and descriptors (the full local features).
+        points3d: (N, 3) float32 3D point per keypoint in the image's camera frame (NaN where
+            unknown), or None when the image had no 3D information.
+        timestamp: seconds, or NaN when unknown.
+        pose: (4, 4) float64 camera-to-world pose, or None.
+        meta: free-form JSON-serialisable metadata (e.g. the image path).
+    """
+
+    entry_id: int
+    bow: BowVector
+    fvec: FeatureVector
+    features: Features
+    points3d: np.ndarray | None = None
+    timestamp: float = float("nan")
+    pose: np.ndarray | None = None
+    meta: dict[str, object] = field(default_factory=dict)
