@@ -31,7 +31,7 @@ def merge(config: T, overrides: Mapping[str, Any] | None = None) -> T:
         if dataclasses.is_dataclass(current) and isinstance(value, Mapping):
             value = merge(current, value)
         changes[key] = value
-    return dataclasses.replace(config, **changes)  # type: ignore[type-var]
+    return dataclasses.replace(config, **changes)  # type: ignore[type-var,unused-ignore]
 
 
 def to_dict(config: object) -> dict[str, Any]:
