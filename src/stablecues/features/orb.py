@@ -1,0 +1,224 @@
+"""ORB features through OpenCV, optionally spread over the image as ORB-SLAM does.
+
+OpenCV's ORB keeps the strongest corners of each pyramid level, which clusters them on the
+most textured objects. ORB-SLAM instead distributes each level's quota with a quadtree so that
+every region of the image contributes; for place recognition and geometric verification that
+spread matters more than raw corner strength. ``distribute="quadtree"`` reproduces it:
+
+1. detect with OpenCV's ORB, asking for ``oversample`` times the wanted number, first with the
+   FAST threshold ``ini_fast`` and, when that yields too few, again with ``min_fast``
+   (ORB-SLAM's two thresholds);
+2. split the per-level quota geometrically over the levels (ORB-SLAM's allocation);
+3. per level, a breadth-first quadtree: cells are split until there are at least as many
+   non-empty cells as the level's quota; each cell keeps its strongest corner, and when there
+   are more cells than the quota the strongest cells win;
+4. compute descriptors for the kept keypoints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from ..errors import ConfigError, InputError
+from ..imageio import to_grey
+from ..types import Features
+
+
+@dataclass(frozen=True)
+class OrbConfig:
+    """ORB settings.
+
+    Attributes:
+        n_features: how many features to keep at most.
+        scale_factor: pyramid scale between levels (> 1).
+        n_levels: pyramid levels.
+        ini_fast: FAST threshold tried first.
+        min_fast: lower FAST threshold used when the first gives too few corners.
+        distribute: "quadtree" spreads keypoints over each level (ORB-SLAM); "none" keeps
+            OpenCV's strongest corners.
+        oversample: with "quadtree", how many candidates to detect per wanted feature.
+        edge_threshold: border in pixels where no features are detected (>= patch_size).
+        patch_size: ORB patch size.
+    """
+
+    n_features: int = 1000
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    ini_fast: int = 20
+    min_fast: int = 7
+    distribute: Literal["quadtree", "none"] = "quadtree"
+    oversample: float = 2.5
+    edge_threshold: int = 19
+    patch_size: int = 31
+
+    def __post_init__(self) -> None:
+        if self.n_features < 0:
+            raise ConfigError(f"n_features must be >= 0, got {self.n_features}")
+        if self.scale_factor <= 1.0:
+            raise ConfigError(f"scale_factor must be > 1, got {self.scale_factor}")
+        if self.n_levels < 1:
+            raise ConfigError(f"n_levels must be >= 1, got {self.n_levels}")
+        if not 0 < self.min_fast <= self.ini_fast:
+            raise ConfigError(f"need 0 < min_fast <= ini_fast, got {self.min_fast}, {self.ini_fast}")
+        if self.distribute not in ("quadtree", "none"):
+            raise ConfigError(f"distribute must be 'quadtree' or 'none', got {self.distribute!r}")
+        if self.oversample < 1.0:
+            raise ConfigError(f"oversample must be >= 1, got {self.oversample}")
+
+
+def level_quotas(n_features: int, scale_factor: float, n_levels: int) -> np.ndarray:
+    """ORB-SLAM's geometric split of ``n_features`` over pyramid levels: (n_levels,) int."""
+    f = 1.0 / scale_factor
+    quotas = np.zeros(n_levels, np.int64)
+    if n_levels == 1:
+        quotas[0] = n_features
+        return quotas
+    per = n_features * (1 - f) / (1 - f**n_levels)
+    total = 0
+    for level in range(n_levels - 1):
+        quotas[level] = round(per)
+        total += quotas[level]
+        per *= f
+    quotas[-1] = max(n_features - total, 0)
+    return quotas
+
+
+def distribute_quadtree(
+    points: np.ndarray, responses: np.ndarray, quota: int, extent: tuple[float, float]
+) -> np.ndarray:
+    """Pick up to ``quota`` well-spread points with a breadth-first quadtree.
+
+    Args:
+        points: (N, 2) float coordinates (x, y).
+        responses: (N,) corner strengths.
+        quota: how many points to keep.
+        extent: (width, height) of the region the points lie in.
+
+    Returns:
+        (M,) int64 indices into ``points``, M <= quota, strongest first.
+    """
+    n = points.shape[0]
+    if quota <= 0 or n == 0:
+        return np.zeros(0, np.int64)
+    if n <= quota:
+        return np.argsort(-responses, kind="stable")
+    side = float(max(extent[0], extent[1], 1.0))
+    depth = 0
+    cells = np.zeros(n, np.int64)
+    while True:
+        cell = side / (1 << depth)
+        cx = np.floor(points[:, 0] / cell).astype(np.int64)
+        cy = np.floor(points[:, 1] / cell).astype(np.int64)
+        cells = cy * (1 << depth) + cx
+        n_cells = np.unique(cells).size
+        # Stop when there are enough cells, or cells are below a pixel (duplicates remain).
+        if n_cells >= quota or cell < 1.0:
+            break
+        depth += 1
+    # strongest point of each cell: sort by (cell, -response), take the first of each run
+    order = np.lexsort((-responses, cells))
+    first = np.ones(order.size, bool)
+    first[1:] = cells[order[1:]] != cells[order[:-1]]
+    winners = order[first]
+    winners = winners[np.argsort(-responses[winners], kind="stable")]
+    return winners[:quota]
+
+
+class OrbExtractor:
+    """ORB keypoints and descriptors (see the module docstring for the distribution)."""
+
+    def __init__(self, config: OrbConfig | None = None) -> None:
+        self.config = config or OrbConfig()
+
+    def _orb(self, n: int, fast: int) -> cv2.ORB:
+        c = self.config
+        return cv2.ORB.create(
+            nfeatures=max(int(n), 1),
+            scaleFactor=c.scale_factor,
+            nlevels=c.n_levels,
+            edgeThreshold=c.edge_threshold,
+            firstLevel=0,
+            WTA_K=2,
+            scoreType=cv2.ORB_HARRIS_SCORE,
+            patchSize=c.patch_size,
+            fastThreshold=fast,
+        )
+
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
+        """Detect and describe ORB features.
+
+        Args:
+            image: (H, W) grey or (H, W, 3) BGR uint8 image, any size.
+            mask: optional (H, W) uint8 mask; keypoints only where it is nonzero.
+
+        Returns:
+            Features, at most ``n_features`` of them, possibly none.
+        """
+        grey = to_grey(image)
+        h, w = grey.shape
+        size = (int(w), int(h))
+        if mask is not None:
+            if not isinstance(mask, np.ndarray) or mask.shape != grey.shape:
+                got = getattr(mask, "shape", type(mask).__name__)
+                raise InputError(f"mask: expected shape {grey.shape}, got {got}")
+            mask = (mask != 0).astype(np.uint8)
+        c = self.config
+        if c.n_features == 0 or min(h, w) <= 2 * c.edge_threshold:
+            return Features.empty(size)
+        if c.distribute == "none":
+            orb = self._orb(c.n_features, c.ini_fast)
+            kps, desc = orb.detectAndCompute(grey, mask)
+            return _to_features(kps, desc, size)
+        want = int(np.ceil(c.n_features * c.oversample))
+        orb = self._orb(want, c.ini_fast)
+        kps = list(orb.detect(grey, mask))
+        if len(kps) < c.n_features:
+            extra = self._orb(want, c.min_fast).detect(grey, mask)
+            kps = _merge_keypoints(kps, list(extra))
+        if not kps:
+            return Features.empty(size)
+        pts = np.array([k.pt for k in kps], np.float32)
+        resp = np.array([k.response for k in kps], np.float32)
+        octv = np.array([k.octave for k in kps], np.int64)
+        quotas = level_quotas(c.n_features, c.scale_factor, c.n_levels)
+        # Levels that lack corners hand their unused quota down to the next level.
+        keep: list[np.ndarray] = []
+        carry = 0
+        for level in range(c.n_levels):
+            idx = np.flatnonzero(octv == level)
+            quota = int(quotas[level]) + carry
+            chosen = idx[distribute_quadtree(pts[idx], resp[idx], quota, (w, h))]
+            carry = quota - chosen.size
+            keep.append(chosen)
+        selected = [kps[i] for i in np.concatenate(keep)]
+        described, desc = orb.compute(grey, selected)
+        return _to_features(described, desc, size)
+
+
+def _merge_keypoints(a: Sequence[cv2.KeyPoint], b: Sequence[cv2.KeyPoint]) -> list[cv2.KeyPoint]:
+    """Union of two detections, dropping from ``b`` points already in ``a`` (same level, < 1 px)."""
+    if not a:
+        return list(b)
+    seen = {(k.octave, round(k.pt[0]), round(k.pt[1])) for k in a}
+    return list(a) + [k for k in b if (k.octave, round(k.pt[0]), round(k.pt[1])) not in seen]
+
+
+def _to_features(
+    kps: Sequence[cv2.KeyPoint], desc: np.ndarray | None, size: tuple[int, int]
+) -> Features:
+    if desc is None or len(kps) == 0:
+        return Features.empty(size)
+    return Features(
+        keypoints=np.array([k.pt for k in kps], np.float32).reshape(-1, 2),
+        descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
+        octaves=np.array([k.octave for k in kps], np.int16),
+        angles=np.array([k.angle for k in kps], np.float32),
+        responses=np.array([k.response for k in kps], np.float32),
+        sizes=np.array([k.size for k in kps], np.float32),
+        image_size=size,
+    )
