@@ -1,0 +1,254 @@
+"""Database: add/query, exclusion, persistence, vocabulary check, crash safety, readers."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stablecues.database import Database, InvertedIndex
+from stablecues.errors import DatabaseError, InputError
+from stablecues.types import Features
+from stablecues.vocabulary import Scoring, Vocabulary, score, train_vocabulary
+
+N_IMAGES = 30
+
+
+def fake_features(desc: np.ndarray) -> Features:
+    n = desc.shape[0]
+    rng = np.random.default_rng(n)
+    return Features(
+        keypoints=rng.random((n, 2)).astype(np.float32) * 100,
+        descriptors=desc,
+        octaves=np.zeros(n, np.int16),
+        angles=np.zeros(n, np.float32),
+        responses=np.ones(n, np.float32),
+        sizes=np.full(n, 31, np.float32),
+        image_size=(100, 100),
+    )
+
+
+@pytest.fixture(scope="module")
+def images() -> list[np.ndarray]:
+    """Descriptor sets of 'images': each mixes its own descriptors with some shared ones."""
+    rng = np.random.default_rng(0)
+    common = rng.integers(0, 256, (60, 32), dtype=np.uint8)
+    return [np.concatenate([rng.integers(0, 256, (80, 32), dtype=np.uint8), common[rng.choice(60, 20)]])
+            for _ in range(N_IMAGES)]
+
+
+@pytest.fixture(scope="module")
+def voc(images: list[np.ndarray]) -> Vocabulary:
+    return train_vocabulary(images, k=6, levels=4, seed=0, levels_up=2, progress=False)
+
+
+def fill(db: Database, voc: Vocabulary, images: list[np.ndarray], with_3d: bool = False) -> None:
+    for i, d in enumerate(images):
+        bow, fvec = voc.transform(d)
+        pts = np.random.default_rng(i).random((d.shape[0], 3)).astype(np.float32) if with_3d else None
+        db.add(bow, fvec, fake_features(d), points3d=pts, timestamp=float(i), meta={"i": i})
+
+
+def test_image_queried_against_database_comes_first(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    db = Database(voc)
+    fill(db, voc, images)
+    for i in (0, 7, N_IMAGES - 1):
+        bow, _ = voc.transform(images[i])
+        res = db.query(bow, max_results=5)
+        assert res[0].entry_id == i and res[0].score == pytest.approx(1.0)
+        assert [r.score for r in res] == sorted((r.score for r in res), reverse=True)
+        # scores equal the pairwise DBoW2 score
+        other = voc.transform(images[res[1].entry_id])[0]
+        assert res[1].score == pytest.approx(score(bow, other, voc.scoring))
+
+
+def test_noisy_copy_finds_its_original(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    db = Database(voc)
+    fill(db, voc, images)
+    rng = np.random.default_rng(3)
+    d = images[12].copy()
+    bits = np.unpackbits(d, axis=1)
+    bits[rng.random(bits.shape) < 0.02] ^= 1
+    bow, _ = voc.transform(np.packbits(bits, axis=1))
+    assert db.query(bow, 3)[0].entry_id == 12
+
+
+def test_exclusion_by_count_and_by_id(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    db = Database(voc)
+    fill(db, voc, images)
+    bow, _ = voc.transform(images[-1])
+    res = db.query(bow, max_results=0, exclude_recent=5)
+    assert res and max(r.entry_id for r in res) < N_IMAGES - 5
+    res = db.query(bow, max_results=0, max_id=10)
+    assert res and max(r.entry_id for r in res) < 10
+    res = db.query(bow, max_results=0, min_id=20)
+    assert res and min(r.entry_id for r in res) >= 20
+    assert db.query(bow, max_results=3, exclude_recent=N_IMAGES) == []
+
+
+def test_entry_round_trip(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    db = Database(voc)
+    fill(db, voc, images, with_3d=True)
+    e = db.entry(4)
+    bow, fvec = voc.transform(images[4])
+    np.testing.assert_array_equal(e.bow.words, bow.words)
+    np.testing.assert_array_equal(e.fvec.nodes, fvec.nodes)
+    np.testing.assert_array_equal(e.features.descriptors, images[4])
+    assert e.points3d is not None and e.points3d.shape == (images[4].shape[0], 3)
+    assert e.timestamp == 4.0 and e.meta == {"i": 4}
+    with pytest.raises(InputError):
+        db.entry(999)
+
+
+def test_persistence_gives_identical_queries(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    path = tmp_path / "db.sqlite"
+    with Database(voc, path) as db:
+        fill(db, voc, images[:20])
+        before = [db.query(voc.transform(d)[0], 5, exclude_recent=2) for d in images]
+    with Database(voc, path) as db:
+        assert len(db) == 20
+        after = [db.query(voc.transform(d)[0], 5, exclude_recent=2) for d in images]
+        assert after == before
+        fill(db, voc, images[20:])  # continues where it stopped
+        assert len(db) == N_IMAGES and db.entry(25).meta == {"i": 5}
+
+
+def test_refuses_another_vocabulary(voc: Vocabulary, images: list[np.ndarray], tmp_path: Path) -> None:
+    path = tmp_path / "db.sqlite"
+    Database(voc, path).close()
+    other = train_vocabulary(images, k=6, levels=4, seed=1, levels_up=2, progress=False)
+    with pytest.raises(DatabaseError, match="not with this vocabulary"):
+        Database(other, path)
+
+
+def test_corrupt_and_truncated_files(voc: Vocabulary, images: list[np.ndarray], tmp_path: Path) -> None:
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(DatabaseError, match="junk.db"):
+        Database(voc, junk)
+    assert junk.read_bytes() == b"this is not sqlite" * 100  # nothing overwritten
+    good = tmp_path / "good.db"
+    with Database(voc, good) as db:
+        fill(db, voc, images)
+    with sqlite3.connect(good) as conn:
+        conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    data = good.read_bytes()
+    cut = tmp_path / "cut.db"
+    cut.write_bytes(data[: len(data) // 3])
+    with pytest.raises(DatabaseError, match="cut.db"):
+        db2 = Database(voc, cut)
+        for i in range(len(db2)):
+            db2.entry(i)
+    with pytest.raises(DatabaseError, match="not found"):
+        Database(voc, tmp_path / "missing.db", readonly=True)
+
+
+def test_empty_features_are_stored_and_queried(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    db = Database(voc)
+    bow, fvec = voc.transform(np.zeros((0, 32), np.uint8))
+    eid = db.add(bow, fvec, Features.empty((64, 48)))
+    assert db.entry(eid).features.descriptors.shape == (0, 32)
+    assert db.query(bow, 5) == []
+    fill(db, voc, images[:3])
+    assert db.query(bow, 5) == []
+    assert db.query(voc.transform(images[1])[0], 1)[0].entry_id == 2
+
+
+def test_inverted_index_segments_equal_brute_force() -> None:
+    rng = np.random.default_rng(0)
+    n_words = 500
+    idx = InvertedIndex(n_words, Scoring.L1, tail_limit=300)
+    vectors = []
+    for _ in range(200):
+        w = np.unique(rng.integers(0, n_words, 40)).astype(np.int32)
+        v = rng.random(w.size)
+        v /= v.sum()
+        vectors.append((w, v))
+        idx.add(w, v.astype(np.float32))
+    assert len(idx._segments) <= 10  # merged logarithmically
+    qw, qv = vectors[17]
+    ids, s = idx.scores(qw, qv, max_id=150)
+    brute = {}
+    for e, (w, v) in enumerate(vectors[:150]):
+        common, iq, ie = np.intersect1d(qw, w, return_indices=True)
+        if common.size:
+            v32 = v.astype(np.float32).astype(np.float64)
+            brute[e] = -0.5 * np.sum(np.abs(qv[iq] - v32[ie]) - np.abs(qv[iq]) - np.abs(v32[ie]))
+    assert ids.tolist() == sorted(brute)
+    np.testing.assert_allclose(s, [brute[e] for e in ids.tolist()], rtol=1e-9)
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys, numpy as np
+    sys.path.insert(0, {tests!r})
+    from test_database import fake_features
+    from stablecues.database import Database
+    from stablecues.vocabulary import load_vocabulary
+    voc = load_vocabulary({voc!r}, levels_up=2)
+    db = Database(voc, {db!r})
+    rng = np.random.default_rng(0)
+    i = len(db)
+    while True:
+        d = rng.integers(0, 256, (400, 32), dtype=np.uint8)
+        bow, fvec = voc.transform(d)
+        db.add(bow, fvec, fake_features(d), meta={{"i": i}})
+        print(i, flush=True)
+        i += 1
+    """
+)
+
+
+def test_killed_writer_loses_at_most_the_entry_in_progress(voc: Vocabulary, tmp_path: Path) -> None:
+    voc_path, db_path = tmp_path / "v.scv", tmp_path / "db.sqlite"
+    voc.save(voc_path)
+    script = WRITER.format(tests=str(Path(__file__).parent), voc=str(voc_path), db=str(db_path))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    done = -1
+    deadline = time.time() + 60
+    while done < 40 and time.time() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        done = int(line)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert done >= 40, "writer did not start"
+    with Database(voc, db_path) as db:
+        n = len(db)
+        assert n >= done + 1  # every acknowledged add survived
+        assert [db.entry(i).meta["i"] for i in range(n)] == list(range(n))
+        bow = db.entry(n - 1).bow
+        assert db.query(bow, 1)[0].entry_id == n - 1
+        with sqlite3.connect(db_path) as conn:
+            assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def test_concurrent_reader_sees_new_entries_after_refresh(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    path = tmp_path / "db.sqlite"
+    writer = Database(voc, path)
+    fill(writer, voc, images[:10])
+    reader = Database(voc, path, readonly=True)
+    assert len(reader) == 10
+    fill(writer, voc, images[10:15])
+    assert len(reader) == 10
+    assert reader.refresh() == 5 and len(reader) == 15
+    bow, _ = voc.transform(images[12])
+    assert reader.query(bow, 1)[0].entry_id == 12
+    with pytest.raises(DatabaseError, match="read-only"):
+        reader.add(bow, voc.transform(images[12])[1], fake_features(images[12]))
+    reader.close()
+    writer.close()

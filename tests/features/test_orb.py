@@ -1,0 +1,97 @@
+"""ORB extractor: shapes, dtypes, spread, empty results, bad input."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from stablecues.errors import ConfigError, InputError
+from stablecues.features import OrbConfig, OrbExtractor, distribute_quadtree
+from stablecues.features.orb import level_quotas
+
+
+def textured(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.full((h, w), 128, np.uint8)
+    for _ in range(150):
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        cv2.rectangle(img, (x, y), (x + int(rng.integers(4, 30)), y + int(rng.integers(4, 30))),
+                      int(rng.integers(0, 256)), -1)
+    return img
+
+
+def test_output_shapes_and_dtypes() -> None:
+    f = OrbExtractor(OrbConfig(n_features=300)).extract(textured())
+    assert 0 < len(f) <= 300
+    assert f.keypoints.dtype == np.float32 and f.keypoints.shape == (len(f), 2)
+    assert f.descriptors.dtype == np.uint8 and f.descriptors.shape == (len(f), 32)
+    assert f.octaves.shape == f.angles.shape == f.responses.shape == f.sizes.shape == (len(f),)
+    assert f.image_size == (320, 240)
+    assert (f.keypoints[:, 0] >= 0).all() and (f.keypoints[:, 0] < 320).all()
+
+
+def test_colour_and_grey_give_the_same_features() -> None:
+    grey = textured()
+    colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    ex = OrbExtractor(OrbConfig(n_features=200))
+    a, b = ex.extract(grey), ex.extract(colour)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (20, 20), (37, 101)])
+def test_tiny_or_blank_images_give_empty_features(shape: tuple[int, int]) -> None:
+    f = OrbExtractor().extract(np.zeros(shape, np.uint8))
+    assert len(f) == 0 and f.descriptors.shape == (0, 32)
+
+
+def test_blank_image_of_normal_size_is_empty() -> None:
+    assert len(OrbExtractor().extract(np.full((240, 320), 77, np.uint8))) == 0
+
+
+def test_mask_restricts_keypoints() -> None:
+    img = textured()
+    mask = np.zeros_like(img)
+    mask[:, :160] = 255
+    f = OrbExtractor(OrbConfig(n_features=300)).extract(img, mask)
+    assert len(f) > 0 and (f.keypoints[:, 0] < 160 + 1).all()
+
+
+def test_quadtree_spreads_keypoints_more_than_plain_orb() -> None:
+    # strong texture in one corner, weak texture elsewhere
+    rng = np.random.default_rng(3)
+    img = (rng.random((240, 320)) * 40 + 100).astype(np.uint8)
+    img[:80, :100] = textured(80, 100, 1)
+    img = cv2.GaussianBlur(img, (3, 3), 0)
+
+    def corner_share(cfg: OrbConfig) -> float:
+        f = OrbExtractor(cfg).extract(img)
+        return float(np.mean((f.keypoints[:, 0] < 100) & (f.keypoints[:, 1] < 80)))
+
+    assert corner_share(OrbConfig(n_features=300)) < corner_share(
+        OrbConfig(n_features=300, distribute="none")
+    )
+
+
+def test_level_quotas_sum_and_decrease() -> None:
+    q = level_quotas(1000, 1.2, 8)
+    assert q.sum() == 1000 and (np.diff(q[:-1]) <= 0).all()
+
+
+def test_distribute_quadtree_picks_one_per_cell_strongest_first() -> None:
+    pts = np.array([[1, 1], [2, 2], [90, 90], [91, 91], [10, 90]], np.float32)
+    resp = np.array([1.0, 5.0, 2.0, 1.0, 3.0], np.float32)
+    idx = distribute_quadtree(pts, resp, 3, (100, 100))
+    assert sorted(idx.tolist()) == [1, 2, 4]
+    assert idx.tolist() == [1, 4, 2]
+
+
+def test_bad_inputs_raise() -> None:
+    with pytest.raises(InputError, match="uint8"):
+        OrbExtractor().extract(np.zeros((50, 50), np.float32))
+    with pytest.raises(InputError, match="shape"):
+        OrbExtractor().extract(np.zeros((50, 50, 2), np.uint8))
+    with pytest.raises(InputError, match="mask"):
+        OrbExtractor().extract(textured(), np.zeros((3, 3), np.uint8))
+    with pytest.raises(ConfigError):
+        OrbConfig(scale_factor=1.0)
