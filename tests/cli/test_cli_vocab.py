@@ -1,0 +1,44 @@
+"""``stablecues vocab`` end to end: train, info, convert, errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from stablecues.cli.main import main
+
+
+def write_images(folder: Path, n: int = 4) -> None:
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        img = np.full((160, 200), 120, np.uint8)
+        for _ in range(80):
+            x, y = int(rng.integers(0, 190)), int(rng.integers(0, 150))
+            cv2.circle(img, (x, y), int(rng.integers(2, 12)), int(rng.integers(0, 256)), -1)
+        cv2.imwrite(str(folder / f"{i:03d}.png"), img)
+
+
+def test_train_info_convert(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_images(tmp_path / "imgs")
+    out = tmp_path / "v.scv"
+    assert main(["vocab", "train", str(tmp_path / "imgs"), "--k", "4", "--levels", "3",
+                 "--out", str(out), "--features", "200"]) == 0
+    assert main(["vocab", "info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "k:           4" in text and "levels:      3" in text and "weighting:   tf-idf" in text
+    assert main(["vocab", "convert", str(out), str(tmp_path / "v.txt")]) == 0
+    assert (tmp_path / "v.txt").read_text().startswith("4 3")
+
+
+def test_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["vocab", "info", str(tmp_path / "missing.scv")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "missing.scv" in err and "not found" in err
+    (tmp_path / "bad.txt").write_text("not a vocabulary\n")
+    assert main(["vocab", "info", str(tmp_path / "bad.txt")]) == 1
+    assert "bad.txt" in capsys.readouterr().err
+    assert main(["vocab", "train", str(tmp_path / "nothing"), "--out", str(tmp_path / "x.scv")]) == 1
