@@ -1,1 +1,121 @@
-"""datasets."""
+"""Datasets: one module per format, each yielding :class:`Frame` s lazily.
+
+``open_dataset(path, format="auto")`` opens any of them; the formats are
+
+========== =====================================================================
+folder     the project's image-folder layout, or a plain folder of images
+tum        TUM RGB-D (rgb.txt, depth.txt, groundtruth.txt)
+kitti      KITTI odometry sequence (image_0/1 or image_2/3, calib.txt, times.txt, poses)
+euroc      EuRoC MAV, ASL layout (mav0/cam0, cam1, sensor.yaml, ground truth)
+fabmap     FAB-MAP New College / City Centre (left/right images interleaved)
+vprbench   two-pass VPR-Bench set (ref/, query/, ground_truth_new.npy) as one sequence
+========== =====================================================================
+"""
+
+from __future__ import annotations
+
+import inspect
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError, DatasetError
+from .base import Dataset, Frame, FrameRecord, SequenceDataset, natural_key
+from .euroc import open_euroc
+from .fabmap import FabmapDataset, open_fabmap
+from .folder import open_folder
+from .kitti import open_kitti
+from .tum import open_tum
+from .vprbench import open_vprbench
+
+__all__ = [
+    "FORMATS",
+    "Dataset",
+    "FabmapDataset",
+    "Frame",
+    "FrameRecord",
+    "SequenceDataset",
+    "detect_format",
+    "natural_key",
+    "open_dataset",
+    "open_euroc",
+    "open_fabmap",
+    "open_folder",
+    "open_kitti",
+    "open_tum",
+    "open_vprbench",
+]
+
+FORMATS: dict[str, Callable[..., SequenceDataset]] = {
+    "folder": open_folder,
+    "tum": open_tum,
+    "kitti": open_kitti,
+    "euroc": open_euroc,
+    "fabmap": open_fabmap,
+    "vprbench": open_vprbench,
+}
+
+_TIMESTAMP_IMAGE = re.compile(r"^\d{6,}\.\d+\.(png|jpg)$", re.IGNORECASE)
+
+
+def detect_format(path: str | Path) -> str:
+    """Guess a dataset folder's format from its layout.
+
+    Rules, first match wins: ``mav0/cam0`` -> euroc; ``rgb.txt`` -> tum; ``image_0/`` or
+    ``image_2/`` -> kitti; ``ref/`` and ``query/`` -> vprbench; ``Images/`` or a
+    ``*GroundTruth*.mat`` -> fabmap; images named by timestamps beside a ``*groundtruth*.txt``
+    -> tum; anything else -> folder.
+
+    Raises:
+        DatasetError: the path is not a folder.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset folder not found")
+    if (root / "mav0" / "cam0").is_dir() or (root.name == "mav0" and (root / "cam0").is_dir()):
+        return "euroc"
+    if (root / "rgb.txt").is_file():
+        return "tum"
+    if (root / "image_0").is_dir() or (root / "image_2").is_dir():
+        return "kitti"
+    if (root / "ref").is_dir() and (root / "query").is_dir():
+        return "vprbench"
+    if (root / "Images").is_dir() or any(root.glob("*GroundTruth*.mat")):
+        return "fabmap"
+    image_dir = root / "rgb" if (root / "rgb").is_dir() else root
+    if any(root.glob("*groundtruth*.txt")) and any(
+        _TIMESTAMP_IMAGE.match(p.name) for p in image_dir.iterdir()
+    ):
+        return "tum"
+    return "folder"
+
+
+def open_dataset(path: str | Path, format: str = "auto", **options: Any) -> SequenceDataset:
+    """Open a dataset folder.
+
+    Args:
+        path: the dataset folder.
+        format: "auto" (see :func:`detect_format`), "folder", "tum", "kitti", "euroc",
+            "fabmap" or "vprbench".
+        **options: keyword options of that format's ``open_*`` function (e.g. ``grey=True``,
+            ``view="right"`` for fabmap, ``groundtruth=...`` for tum / euroc).
+
+    Returns:
+        The dataset; iterate it for frames.
+
+    Raises:
+        ConfigError: unknown format or an option the format does not take.
+        DatasetError: missing or malformed files.
+    """
+    fmt = detect_format(path) if format == "auto" else format
+    opener = FORMATS.get(fmt)
+    if opener is None:
+        raise ConfigError(f"unknown dataset format {format!r}; known: auto, {', '.join(FORMATS)}")
+    accepted = set(inspect.signature(opener).parameters) - {"path"}
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise ConfigError(
+            f"dataset format {fmt!r} takes no option {unknown[0]!r}; known: {', '.join(sorted(accepted))}"
+        )
+    return opener(path, **options)

@@ -1,0 +1,136 @@
+"""The project's image-folder format, and plain folders of images.
+
+Layout (everything but the images optional)::
+
+    DIR/images/*.png     left (or only) images, sorted by name (digit runs compare as numbers)
+    DIR/right/           rectified right images, same names (any image suffix)
+    DIR/depth/           16-bit depth PNG, metres = value / DepthMapFactor (calib.yaml; else 1000)
+    DIR/labels/          uint8 PNG of CamVid class ids
+    DIR/times.txt        one timestamp in seconds per line, one line per image
+    DIR/poses.txt        TUM format ``t x y z qx qy qz qw``, camera-to-world, one line per image
+    DIR/calib.yaml       ORB-SLAM settings style (``%YAML:1.0``, Camera.fx, ..., DepthMapFactor)
+    DIR/loops.npy        loop ground truth, (N, N) bool lower-triangular
+
+A plain folder of images (no ``images/`` sub-folder) is read the same way, with the images
+directly in ``DIR``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from .base import (
+    FrameRecord,
+    SequenceDataset,
+    find_first,
+    list_images,
+    match_by_stem,
+    read_number_rows,
+    read_tum_trajectory,
+)
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_DEPTH_FACTOR = 1000.0
+
+
+def read_settings_value(path: Path, key: str) -> float | None:
+    """A scalar ``key: value`` from an ORB-SLAM / OpenCV settings yaml, or None when absent.
+
+    Raises:
+        DatasetError: the file is missing, or the key's value is not a number.
+    """
+    if not path.is_file():
+        raise DatasetError(f"{path}: settings file not found")
+    pattern = re.compile(rf"^\s*{re.escape(key)}\s*:\s*(\S+)")
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        m = pattern.match(line)
+        if m:
+            try:
+                return float(m.group(1))
+            except ValueError:
+                raise DatasetError(f"{path}: {key} should be a number, found {m.group(1)!r}") from None
+    return None
+
+
+def open_folder(
+    path: str | Path,
+    *,
+    calibration: str | Path | None = None,
+    depth_factor: float | None = None,
+    grey: bool = False,
+) -> SequenceDataset:
+    """Open an image folder (project layout or a plain folder of images).
+
+    Args:
+        path: the dataset folder.
+        calibration: calibration file overriding ``DIR/calib.yaml``.
+        depth_factor: raw depth units per metre, overriding calib.yaml's ``DepthMapFactor``.
+        grey: read images as (H, W) grey.
+
+    Raises:
+        DatasetError: missing folder or images, a side folder lacking an image, or a
+            ``times.txt`` / ``poses.txt`` whose line count differs from the image count.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset folder not found")
+    image_dir = root / "images" if (root / "images").is_dir() else root
+    images = list_images(image_dir)
+    n = len(images)
+    records = [FrameRecord(image=p) for p in images]
+
+    for sub, attr in (("right", "right"), ("depth", "depth"), ("labels", "labels")):
+        folder = root / sub
+        if folder.is_dir():
+            for rec, other in zip(records, match_by_stem(images, folder, sub), strict=True):
+                setattr(rec, attr, other)
+
+    times_file = root / "times.txt"
+    if times_file.is_file():
+        times = read_number_rows(times_file, 1, "times (one timestamp per line)")[:, 0]
+        if times.shape[0] != n:
+            raise DatasetError(
+                f"{times_file}: expected {n} timestamps (one per image), found {times.shape[0]}"
+            )
+        for rec, t in zip(records, times, strict=True):
+            rec.timestamp = float(t)
+
+    poses_file = root / "poses.txt"
+    if poses_file.is_file():
+        ptimes, poses = read_tum_trajectory(poses_file)
+        if poses.shape[0] != n:
+            raise DatasetError(f"{poses_file}: expected {n} poses (one per image), found {poses.shape[0]}")
+        for rec, t, pose in zip(records, ptimes, poses, strict=True):
+            rec.pose = pose
+            if not np.isfinite(rec.timestamp):
+                rec.timestamp = float(t)
+
+    calib = Path(calibration) if calibration is not None else find_first(root, ("calib.yaml", "calib.yml"))
+    if calib is not None and not calib.is_file():
+        raise DatasetError(f"{calib}: calibration file not found")
+    factor = depth_factor
+    if factor is None and calib is not None and calib.suffix in (".yaml", ".yml"):
+        factor = read_settings_value(calib, "DepthMapFactor")
+    if factor is None:
+        factor = DEFAULT_DEPTH_FACTOR
+        if records and records[0].depth is not None:
+            logger.warning("%s: no DepthMapFactor given; assuming %g depth units per metre", root, factor)
+    if not factor > 0:
+        raise DatasetError(f"{calib or root}: DepthMapFactor must be > 0, found {factor}")
+
+    loops = root / "loops.npy"
+    return SequenceDataset(
+        root=root,
+        records=records,
+        format="folder",
+        depth_factor=float(factor),
+        calibration_path=calib,
+        gt_path=loops if loops.is_file() else None,
+        grey=grey,
+    )
