@@ -30,7 +30,9 @@ def test_mat_lower_upper_and_variable_choice(tmp_path: Path) -> None:
     gt = load_ground_truth(tmp_path / "a.mat")
     assert gt.matrix.dtype == bool and gt.matrix.sum() == 3 and not gt.transposed
     assert gt.variable == "truth" and gt.sha256 == sha256_file(tmp_path / "a.mat") and len(gt.sha256) == 64
-    scipy.io.savemat(tmp_path / "b.mat", {"small": np.ones((2, 2)), "gt": LOWER.T.astype(float), "s": np.zeros((1, 3))})
+    scipy.io.savemat(
+        tmp_path / "b.mat", {"small": np.ones((2, 2)), "gt": LOWER.T.astype(float), "s": np.zeros((1, 3))}
+    )
     gt = load_ground_truth(tmp_path / "b.mat")  # largest 2-D array, upper-triangular -> transposed
     assert gt.variable == "gt" and gt.transposed
     np.testing.assert_array_equal(gt.matrix, LOWER.astype(bool))
