@@ -1,0 +1,117 @@
+"""Turn a training checkpoint into shipped weights: ONNX graph, metadata JSON, training log.
+
+Needs torch (export); the evaluation that fills the metadata runs the exported graph.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from .evaluate import evaluate_model
+from .inference import DEFAULT_T, SegmentationModel
+
+log = logging.getLogger(__name__)
+
+
+def training_log_markdown(log_jsonl: str | Path, command: str) -> str:
+    """A Markdown table of a run's ``log.jsonl`` (one row per epoch)."""
+    rows = [json.loads(line) for line in Path(log_jsonl).read_text().splitlines() if line.strip()]
+    out = [
+        "# Training log of the shipped segmentation weights",
+        "",
+        f"Command: `{command}`",
+        "",
+        "| epoch | loss | lr | val mIoU % | val global % | val class-avg % | seconds |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        if "val_miou" in r:
+            val = f"{100 * r['val_miou']:.2f} | {100 * r['val_global']:.2f} | {100 * r['val_class']:.2f}"
+        else:
+            val = "- | - | -"
+        out.append(f"| {r['epoch'] + 1} | {r['loss']:.4f} | {r['lr']:.2e} | {val} | {r['time_s']:.0f} |")
+    return "\n".join(out) + "\n"
+
+
+def release(
+    checkpoint: str | Path,
+    onnx_path: str | Path,
+    data: str | Path,
+    *,
+    default_t: int = DEFAULT_T,
+    splits: tuple[str, ...] = ("val", "test"),
+    cache_dir: str | Path | None = None,
+    command: str = "",
+) -> dict[str, Any]:
+    """Export ``checkpoint`` to ``onnx_path``, evaluate it, and write ``<stem>.json`` and
+    ``<stem>_training.md`` beside it.
+
+    Args:
+        checkpoint: ``best.pt`` of a training run (its folder's ``log.jsonl`` becomes the log).
+        onnx_path: where the graph goes (e.g. ``src/stablecues/data/segnet_camvid.onnx``).
+        data: CamVid folder for the evaluation.
+        default_t: Monte-Carlo samples the weights default to.
+        splits: splits to evaluate, each at T = 1 and T = default_t.
+        cache_dir: decoded-split cache folder.
+        command: the command that made the checkpoint, recorded in the metadata.
+
+    Returns:
+        The metadata written.
+    """
+    import torch
+
+    from .export import export_onnx, write_metadata
+    from .train import load_checkpoint
+
+    checkpoint = Path(checkpoint)
+    net = load_checkpoint(checkpoint)
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    size = ckpt["config"]["input_size"]
+    input_size = (int(size[0]), int(size[1]))
+    onnx_path = Path(onnx_path)
+    export_onnx(net, onnx_path, input_size)
+    meta_path = onnx_path.with_suffix(".json")
+    if meta_path.exists():
+        meta_path.unlink()  # stale metadata must not describe the new graph
+    model = SegmentationModel.load(onnx_path)
+    model.default_t = default_t
+    metrics: dict[str, Any] = {}
+    for split in splits:
+        for t in sorted({1, default_t}):
+            r = evaluate_model(model, data, split, t, cache_dir=cache_dir)
+            key = f"{split}_T{t}"
+            metrics[key] = {k: r[k] for k in ("frames", "T", "miou", "global_acc", "class_acc", "iou", "acc")}
+            if t == default_t:
+                metrics[key]["calibration"] = r["calibration"]
+            log.info("%s: mIoU %.4f global %.4f class %.4f", key, r["miou"], r["global_acc"], r["class_acc"])
+    log_jsonl = checkpoint.parent / "log.jsonl"
+    epochs_logged = 0
+    train_seconds = 0.0
+    if log_jsonl.is_file():
+        lines = [json.loads(x) for x in log_jsonl.read_text().splitlines() if x.strip()]
+        epochs_logged = len(lines)
+        train_seconds = float(sum(x.get("time_s", 0.0) for x in lines))
+        md = onnx_path.with_name(onnx_path.stem + "_training.md")
+        md.write_text(training_log_markdown(log_jsonl, command))
+    training = {
+        "command": command,
+        "checkpoint_epoch": int(ckpt["epoch"]) + 1,
+        "schedule_epochs": int(ckpt["config"]["epochs"]),
+        "epochs_logged": epochs_logged,
+        "train_seconds": round(train_seconds, 1),
+        "seed": int(ckpt["config"]["seed"]),
+        "config": ckpt["config"],
+        "hardware": "CPU, 1 thread (no GPU)",
+    }
+    return write_metadata(
+        onnx_path,
+        meta_path,
+        net=net,
+        input_size=input_size,
+        default_t=default_t,
+        metrics=metrics,
+        training=training,
+    )
