@@ -139,12 +139,17 @@ def test_r100p_equals_brute_force_sweep(seed: int) -> None:
     n = 120
     gt = np.tril(rng.random((n, n)) < 0.03, -1)
     c = np.array([rng.integers(0, i) if i > 0 and rng.random() < 0.7 else -1 for i in range(n)])
+    for i in np.flatnonzero(gt[:, :-4].any(axis=1)):  # half the looping rows detect a loop
+        loops = np.flatnonzero(gt[i, : max(i - 3, 0)])
+        if loops.size and rng.random() < 0.5:
+            c[i] = rng.choice(loops)
     # scores with ties; correct detections tend to score higher
     s = np.round(rng.random(n), 1)
     hit = (c >= 0) & gt[np.arange(n), np.maximum(c, 0)]
     s[hit] += 0.5
     ev = evaluate_detections(gt, np.arange(n), c, s, protocol="exact", exclude=3)
     best, ap = _brute_force(gt, c, s, 3)
+    assert ev.tp > 10 and 0 < best < 1  # a meaningful case
     assert ev.recall_at_100p == pytest.approx(best)
     assert ev.auc == pytest.approx(ap)
 
