@@ -141,7 +141,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
             f"{path}: truncated vocabulary file: {raw.size} bytes, expected {start + size}"
         )
     payload = raw[start : start + size]
-    if zlib.crc32(payload.tobytes()) != header["payload_crc32"]:
+    if zlib.crc32(np.ascontiguousarray(payload).data) != header["payload_crc32"]:
         raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
     arrays = {}
     try:

@@ -10,10 +10,9 @@ import numpy as np
 
 from ..errors import VocabularyError
 from ..types import DESCRIPTOR_BYTES, BowVector, FeatureVector
-from .descriptors import as_words, check_descriptors, popcount_words
+from .descriptors import as_words, check_descriptors
 from .scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
 
-_FAR = np.int32(10_000)  # distance given to missing children
 
 
 @dataclass(frozen=True)
@@ -94,10 +93,24 @@ class Vocabulary:
             raise VocabularyError(
                 f"vocabulary: tree is {int(self.depth.max())} levels deep but the header says L={levels}"
             )
-        self._node_words64 = as_words(self.descriptors)
+        self._build_search_tables()
         self.levels_up = int(levels_up)
         self._di_cache: dict[int, np.ndarray] = {}
         self._fingerprint = fingerprint
+
+    def _build_search_tables(self) -> None:
+        """Per internal node, its children's centres side by side: one contiguous (k * 4)
+        uint64 row, so each level of the descent gathers one block per descriptor."""
+        internal = np.flatnonzero(~self.is_leaf).astype(np.int32)
+        self._row = np.full(self.n_nodes, -1, np.int32)
+        self._row[internal] = np.arange(internal.size, dtype=np.int32)
+        kids = self.children[internal]  # (I, k)
+        words = as_words(self.descriptors)
+        blocks = words[np.where(kids >= 0, kids, 0)]  # (I, k, 4)
+        self._blocks = np.ascontiguousarray(blocks.reshape(internal.size, self.k * 4))
+        self._block_kids = kids
+        missing = kids < 0
+        self._penalty = (np.where(missing, 1024, 0).astype(np.uint32) if missing.any() else None)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -160,13 +173,20 @@ class Vocabulary:
         if n == 0 or self.n_nodes == 1:
             return cur
         q = as_words(descriptors)
+        k = self.k
         active = np.arange(n)
-        children, node64 = self.children, self._node_words64
         while active.size:
-            ch = children[cur[active]]  # (M, k)
-            d = popcount_words(node64[ch] ^ q[active, None, :])
-            d[ch < 0] = _FAR
-            best = ch[np.arange(active.size), d.argmin(axis=1)]
+            rows = self._row[cur[active]]
+            x = np.take(self._blocks, rows, axis=0)  # (M, k*4) child centres
+            np.bitwise_xor(x, np.tile(q[active], (1, k)), out=x)
+            counts = np.bitwise_count(x).view(np.uint32)  # 4 byte-counts per uint32
+            # sum the four bytes of each uint32 into its top byte (each <= 64, so no carry);
+            # a sum of exactly 256 wraps to 0: that is the all-bits-differ pattern 0x40404040
+            d = (counts * np.uint32(0x01010101)) >> np.uint32(24)
+            d[counts == 0x40404040] = 256
+            if self._penalty is not None:
+                d += self._penalty[rows]
+            best = self._block_kids[rows, d.argmin(axis=1)]
             cur[active] = best
             active = active[~self.is_leaf[best]]
         return cur
