@@ -34,7 +34,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from engine_synth import EntryMaker, synthetic_vocabulary  # noqa: E402
-
 from stablecues.database import Database  # noqa: E402
 from stablecues.features import OrbExtractor  # noqa: E402
 from stablecues.imageio import read_image  # noqa: E402
@@ -220,7 +219,8 @@ def main() -> None:
 
         print(f"building a {args.entries_large}-entry database on disk (subprocess) ...", flush=True)
         out = subprocess.run(
-            [sys.executable, __file__, "--child", str(bin_path), str(args.entries_large), str(tmp / "big.db")],
+            [sys.executable, __file__, "--child", str(bin_path), str(args.entries_large),
+             str(tmp / "big.db")],
             check=True, capture_output=True, text=True,
         )
         big = json.loads(out.stdout.strip().splitlines()[-1])

@@ -14,7 +14,6 @@ from .descriptors import as_words, check_descriptors
 from .scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
 
 
-
 @dataclass(frozen=True)
 class VocabularyInfo:
     """Summary of a vocabulary, as ``stablecues vocab info`` prints it."""
