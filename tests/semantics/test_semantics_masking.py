@@ -24,7 +24,9 @@ def make_seg(labels: np.ndarray, uncertainty: np.ndarray | None = None) -> Segme
     )
 
 
-def make_features(xy: list[tuple[float, float]], size: tuple[int, int] = (40, 20), kp_size: float = 4.0) -> Features:
+def make_features(
+    xy: list[tuple[float, float]], size: tuple[int, int] = (40, 20), kp_size: float = 4.0
+) -> Features:
     n = len(xy)
     return Features(
         keypoints=np.array(xy, np.float32).reshape(n, 2),

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import shared_path
 
+from conftest import shared_path
 from stablecues.errors import DatasetError
 from stablecues.semantics.data import (
     AugmentConfig,
@@ -53,7 +53,7 @@ def test_augment_shapes_and_void_padding() -> None:
     label = np.ones((20, 30), np.uint8)
     x, y = augment(image, label, rng, AugmentConfig(crop=(32, 40), scale=(1.0, 1.0)))
     assert x.shape == (3, 32, 40) and x.dtype == np.float32 and y.shape == (32, 40)
-    assert 0.0 <= float(x.min()) and float(x.max()) <= 1.0
+    assert float(x.min()) >= 0.0 and float(x.max()) <= 1.0
     assert set(np.unique(y).tolist()) == {1, 11}  # padding is void
 
 
