@@ -1,0 +1,111 @@
+"""``stablecues eval``: score a run directory against a loop ground truth."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "eval",
+        help="evaluate a run directory against loop ground truth",
+        description="Recall at 100 %% precision (swept over every distinct score), the PR curve, its area, "
+        "the counts and the per-stage timing of a run. Writes eval_<protocol>.json into the run directory.",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="directory written by 'stablecues run'")
+    p.add_argument(
+        "--gt",
+        type=Path,
+        help="ground truth: .mat, .npy, .npz, image, or VPR-Bench ground_truth_new.npy "
+        "(default: the one recorded in the run's meta.json)",
+    )
+    p.add_argument("--protocol", choices=("exact", "tolerance", "ibow"), default="exact")
+    p.add_argument("--tolerance", type=int, default=0, metavar="N", help="+-N frames (tolerance, ibow)")
+    p.add_argument(
+        "--exclude",
+        type=int,
+        default=None,
+        metavar="N",
+        help="frames just before a query that are never loops (default: the run's 'exclude', else 0)",
+    )
+    p.add_argument(
+        "--exclude-s", type=float, default=0.0, metavar="S", help="also exclude the last S seconds"
+    )
+    p.add_argument("--json", type=Path, metavar="OUT", help="also write the results here")
+    p.add_argument("--gt-variable", help="variable name inside a .mat / .npz ground truth")
+    p.add_argument(
+        "--gt-view",
+        choices=("all", "left", "right", "pair"),
+        default="all",
+        help="images of an interleaved left/right release (FAB-MAP) to keep",
+    )
+    p.add_argument(
+        "--gt-orientation",
+        choices=("auto", "lower", "upper"),
+        default="auto",
+        help="which half of the matrix holds the loops (auto: detect)",
+    )
+    p.add_argument(
+        "--detections",
+        choices=("accepted", "all"),
+        default="accepted",
+        help="score only accepted loops (default) or every frame's candidate",
+    )
+    p.add_argument(
+        "--score", choices=("score", "raw_score"), default="score", help="column that ranks detections"
+    )
+    return p
+
+
+def format_summary(doc: dict) -> str:
+    """The short text table ``stablecues eval`` prints."""
+    thr = doc.get("threshold_at_100p")
+    lines = [
+        f"run          {doc['run']}",
+        f"ground truth {doc.get('gt_file')}  sha256 {doc.get('gt_sha256')}",
+        f"protocol     {doc['protocol']}  tolerance {doc['tolerance']}  exclude {doc['exclude']} frames"
+        + (f" + {doc['exclude_s']} s" if doc.get("exclude_s") else ""),
+        f"queries      {doc['queries']}  positives {doc['positives']}  detections {doc['detections']}",
+        f"TP {doc['tp']}  FP {doc['fp']}  FN {doc['fn']}  "
+        f"precision {doc['precision']:.4f}  recall {doc['recall']:.4f}",
+        f"R@100P       {100 * doc['recall_at_100p']:.2f} %"
+        + (f"  (score >= {thr:.6g})" if thr is not None else ""),
+        f"AUC          {doc['auc']:.4f}",
+    ]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
+    from ..evaluation.evaluate import eval_file_name, evaluate_run, save_evaluation
+    from ..evaluation.groundtruth import load_ground_truth
+    from ..evaluation.runs import load_run
+    from ..evaluation.timing import format_timing_table
+
+    run_ = load_run(args.run_dir)
+    gt_path = args.gt or run_.meta.get("ground_truth")
+    if not gt_path:
+        raise ConfigError(f"{args.run_dir}: no ground truth recorded for this run; pass --gt FILE")
+    gt = load_ground_truth(
+        gt_path, variable=args.gt_variable, orientation=args.gt_orientation, view=args.gt_view
+    )
+    exclude = args.exclude if args.exclude is not None else int(run_.meta.get("exclude", 0) or 0)
+    _, doc = evaluate_run(
+        run_,
+        gt,
+        protocol=args.protocol,
+        tolerance=args.tolerance,
+        exclude=exclude,
+        exclude_s=args.exclude_s,
+        detections=args.detections,
+        score=args.score,
+    )
+    inside = save_evaluation(doc, run_.path / eval_file_name(args.protocol, doc["tolerance"]))
+    if args.json:
+        save_evaluation(doc, args.json)
+    print(format_summary(doc))
+    print()
+    print(format_timing_table(doc["timing_ms"]))
+    print(f"\nwritten: {inside}" + (f", {args.json}" if args.json else ""))
+    return 0
