@@ -391,6 +391,22 @@ class Database:
         p = unpack_arrays(row[0], f"{self._where()}: entry {entry_id}")
         return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
 
+    def column(self, name: str) -> list[Any]:
+        """One scalar column of every entry in id order: "timestamp", "n_features" or "meta"
+        (decoded from JSON)."""
+        if name not in ("timestamp", "n_features", "meta"):
+            raise InputError(f"unknown entry column {name!r}")
+        try:
+            rows = self._conn.execute(f"SELECT {name} FROM entries ORDER BY id").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(f"{self._where()}: cannot read entries ({exc})") from exc
+        values = [r[0] for r in rows[: len(self)]]
+        if name == "meta":
+            return [json.loads(v) for v in values]
+        if name == "timestamp":
+            return [math.nan if v is None else float(v) for v in values]
+        return values
+
     def stats(self) -> dict[str, float]:
         """Sizes: entries, postings, index bytes in memory, file bytes on disk."""
         file_bytes = 0

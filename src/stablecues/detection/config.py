@@ -1,0 +1,125 @@
+"""Settings of the loop detector and its named presets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ..config import merge
+from ..errors import ConfigError
+from ..features import OrbConfig
+from ..semantics.masking import MASKING_PRESETS, MaskingConfig
+from ..verification.config import VerificationConfig
+from ..verification.config import preset as verification_preset
+
+
+@dataclass(frozen=True)
+class QueryConfig:
+    """DLoopDetector's query logic.
+
+    Attributes:
+        exclude_recent: the latest entries never proposed as loops (DLoopDetector's dislocal).
+        exclude_recent_s: also exclude entries newer than this many seconds (when frames have
+            timestamps); None: frames only.
+        max_results: database results considered per query.
+        use_nss: normalise scores by the score between the frame and the previous one.
+        alpha: minimum (normalised) score of a candidate.
+        min_nss_factor: a previous-frame score below this cannot normalise (frame skipped).
+        island_gap: largest gap in entry ids inside one island of candidates.
+        temporal_k: consecutive temporally consistent queries, counting the current one, before a
+            candidate is verified (1: no temporal check).
+        temporal_gap: largest gap between the islands of consecutive frames to be consistent.
+        max_query_gap: largest gap in frames between consecutive consistent queries.
+    """
+
+    exclude_recent: int = 20
+    exclude_recent_s: float | None = None
+    max_results: int = 50
+    use_nss: bool = True
+    alpha: float = 0.3
+    min_nss_factor: float = 0.005
+    island_gap: int = 3
+    temporal_k: int = 3
+    temporal_gap: int = 3
+    max_query_gap: int = 2
+
+    def __post_init__(self) -> None:
+        if self.exclude_recent < 0 or self.max_results < 1 or self.temporal_k < 1:
+            raise ConfigError("exclude_recent >= 0, max_results >= 1 and temporal_k >= 1 are required")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Everything the loop detector does, as one frozen value.
+
+    Attributes:
+        features: ORB settings.
+        masking: semantic feature selection, or None for none.
+        semantic_source: "network" (the shipped segmentation network) or "labels" (the frame's
+            own label image, e.g. ground truth of a synthetic sequence).
+        segmentation_samples: Monte-Carlo samples T (None: the weights' default).
+        verification: geometric verification, or None to accept every temporally consistent
+            candidate (DBoW2 without geometry).
+        query: database query, islands and temporal consistency.
+        similarity: keep each frame's scores against all earlier entries (for the report's
+            similarity matrix).
+    """
+
+    features: OrbConfig = field(default_factory=OrbConfig)
+    masking: MaskingConfig | None = None
+    semantic_source: Literal["network", "labels"] = "network"
+    segmentation_samples: int | None = None
+    verification: VerificationConfig | None = field(default_factory=VerificationConfig)
+    query: QueryConfig = field(default_factory=QueryConfig)
+    similarity: bool = True
+
+    def __post_init__(self) -> None:
+        if self.semantic_source not in ("network", "labels"):
+            raise ConfigError(
+                f"semantic_source: expected 'network' or 'labels', got {self.semantic_source!r}"
+            )
+
+
+def _verif(name: str | None) -> VerificationConfig | None:
+    return None if name is None else verification_preset(name)
+
+
+def _mask(name: str | None) -> MaskingConfig | None:
+    return None if name is None else MASKING_PRESETS[name]
+
+
+#: preset name -> (masking preset, verification preset, one line of description)
+_PRESETS: dict[str, tuple[str | None, str | None, str]] = {
+    "paper": ("paper", "paper", "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
+    "bow": (None, "dloop", "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),
+    "bow-nogeom": (None, None, "DBoW2 without geometric check"),
+    "mask-only": ("paper", "dloop", "ablation: the paper's hard mask + the baseline's fundamental check"),
+    "triangles-only": (None, "default", "ablation: no mask + noise-aware triangle check with PnP"),
+    "paper-triangles-noise": ("paper", "default", "ablation: hard mask + noise-aware triangle check"),
+    "dilate": ("dilate", "default", "soft mask: static mask dilated + noise-aware triangles"),
+    "patch": ("patch", "default", "soft mask: class over the keypoint's patch + noise-aware triangles"),
+    "dynamic": ("dynamic", "default", "soft mask: drop only dynamic classes + noise-aware triangles"),
+}
+
+#: the configuration used when no preset is named (chosen on the real-data ablation, README).
+DEFAULT_PRESET = "triangles-only"
+
+
+def preset_names() -> list[str]:
+    return ["default", *_PRESETS]
+
+
+def describe_preset(name: str) -> str:
+    if name == "default":
+        return f"the measured best (currently the same as {DEFAULT_PRESET!r})"
+    return _PRESETS[name][2]
+
+
+def preset(name: str = "default", overrides: dict[str, Any] | None = None) -> DetectorConfig:
+    """A named configuration, with optional overrides (unknown keys are rejected)."""
+    key = DEFAULT_PRESET if name == "default" else name
+    if key not in _PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known: {', '.join(preset_names())}")
+    mask, verif, _ = _PRESETS[key]
+    cfg = DetectorConfig(masking=_mask(mask), verification=_verif(verif))
+    return merge(cfg, overrides)

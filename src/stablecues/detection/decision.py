@@ -1,0 +1,96 @@
+"""What the loop detector says about each frame."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..verification.result import Verification
+
+
+class Status(enum.StrEnum):
+    """The stage that decided (DLoopDetector's ``DetectionStatus``, plus semantics)."""
+
+    LOOP_DETECTED = "loop_detected"
+    CLOSE_MATCHES_ONLY = "close_matches_only"  # nothing outside the exclusion window yet
+    NO_DB_RESULTS = "no_db_results"  # no stored entry shares a word
+    LOW_NSS_FACTOR = "low_nss_factor"  # previous-frame score too low to normalise
+    LOW_SCORES = "low_scores"  # every candidate under alpha
+    NO_TEMPORAL_CONSISTENCY = "no_temporal_consistency"
+    NO_GEOMETRICAL_CONSISTENCY = "no_geometrical_consistency"
+
+
+@dataclass(frozen=True)
+class Island:
+    """A group of database entries with nearby ids, proposed together.
+
+    Attributes:
+        first: first entry id.
+        last: last entry id.
+        best: entry id with the highest score.
+        best_score: its (normalised) score.
+        score: the island's score (sum of its entries' scores).
+    """
+
+    first: int
+    last: int
+    best: int
+    best_score: float
+    score: float
+
+
+@dataclass(frozen=True, eq=False)
+class LoopDecision:
+    """The detector's answer for one frame.
+
+    Attributes:
+        frame_index: the frame's index in its sequence.
+        entry_id: the database entry the frame was stored as.
+        status: the stage that decided.
+        candidate: entry id of the proposed loop (the best entry of the best island), -1 if none.
+        candidate_frame: the frame index stored with that entry, -1 if none.
+        raw_score: the candidate's BoW score.
+        score: the candidate's normalised score (= raw without normalisation).
+        nss_factor: score between the frame and the previous one (NaN before there is one).
+        island: the best island, or None.
+        consistent: consecutive temporally consistent frames including this one.
+        verification: the geometric check's result, when it ran.
+        n_features: features extracted.
+        n_kept: features kept after semantic masking (= n_features without masking).
+        mask_fallback: masking kept too few, so every feature was kept.
+        timings: milliseconds per stage.
+    """
+
+    frame_index: int
+    entry_id: int
+    status: Status
+    candidate: int = -1
+    candidate_frame: int = -1
+    raw_score: float = 0.0
+    score: float = 0.0
+    nss_factor: float = math.nan
+    island: Island | None = None
+    consistent: int = 0
+    verification: Verification | None = None
+    n_features: int = 0
+    n_kept: int = 0
+    mask_fallback: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def accepted(self) -> bool:
+        return self.status == Status.LOOP_DETECTED
+
+    @property
+    def relative_pose(self) -> np.ndarray | None:
+        """(4, 4) transform from the candidate's camera to this frame's camera, when known."""
+        v = self.verification
+        if v is None or v.rotation is None or v.translation is None:
+            return None
+        t = np.eye(4)
+        t[:3, :3] = v.rotation
+        t[:3, 3] = v.translation
+        return t

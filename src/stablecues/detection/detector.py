@@ -1,0 +1,361 @@
+"""The loop detector: a stream of frames in, loop decisions out.
+
+Per frame, as DLoopDetector (Galvez-Lopez & Tardos 2012) with the paper's additions:
+
+1. ORB features; optionally only those on meaningful structure (semantic masking);
+2. the BoW vector and direct index from the vocabulary;
+3. a database query excluding the most recent entries; scores normalised by the score
+   between the frame and the previous one; candidates under ``alpha`` dropped;
+4. candidates grouped into islands of nearby entries; the best island must be temporally
+   consistent with the islands of the previous ``temporal_k`` frames;
+5. geometric verification of the island's best entry (3D triangles, PnP or the fundamental
+   matrix); the accepted loop comes with the relative pose;
+6. the frame is stored (with its keypoints and 3D points) whatever the decision.
+
+The state lives in the database file: reopening a detector on the same file continues where
+it stopped (the temporal window is restored from the last entries' records).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import to_dict
+from ..database import Database
+from ..datasets.base import Frame
+from ..errors import ConfigError, InputError
+from ..features import OrbExtractor
+from ..imageio import to_grey
+from ..types import BowVector, Features
+from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
+from .config import DetectorConfig
+from .decision import Island, LoopDecision, Status
+
+log = logging.getLogger(__name__)
+
+
+def compute_islands(ids: np.ndarray, scores: np.ndarray, gap: int) -> list[Island]:
+    """Group candidate entries whose ids are at most ``gap`` apart (DLoopDetector's islands).
+
+    Args:
+        ids: (K,) entry ids.
+        scores: (K,) their scores.
+        gap: largest id difference inside an island.
+
+    Returns:
+        islands, each with its best entry and the sum of its scores.
+    """
+    if ids.size == 0:
+        return []
+    order = np.argsort(ids, kind="stable")
+    ids, scores = ids[order], scores[order]
+    cuts = np.flatnonzero(np.diff(ids) > gap) + 1
+    islands = []
+    for part_ids, part_scores in zip(np.split(ids, cuts), np.split(scores, cuts), strict=True):
+        b = int(np.argmax(part_scores))
+        islands.append(Island(int(part_ids[0]), int(part_ids[-1]), int(part_ids[b]),
+                              float(part_scores[b]), float(part_scores.sum())))
+    return islands
+
+
+class LoopDetector:
+    """Streaming loop-closure detection.
+
+    Args:
+        config: settings (see :mod:`stablecues.detection.config` for presets).
+        vocabulary: the vocabulary; default: the shipped one.
+        database: SQLite file to keep the map in (reopened and continued when it exists), or
+            None to keep everything in memory.
+        calibration: camera calibration used when a frame carries none.
+        segmenter: a callable ``image -> SegmentationResult`` replacing the shipped network.
+    """
+
+    def __init__(
+        self,
+        config: DetectorConfig | None = None,
+        vocabulary: Vocabulary | None = None,
+        database: str | Path | None = None,
+        calibration: Any | None = None,
+        segmenter: Callable[[np.ndarray], Any] | None = None,
+    ) -> None:
+        self.config = config or DetectorConfig()
+        self.vocabulary = vocabulary or default_vocabulary()
+        if self.vocabulary.scoring in (Scoring.KL, Scoring.DOT_PRODUCT):
+            raise ConfigError("the loop detector needs a similarity scoring in [0, 1] (L1, L2, "
+                              "chi-square or Bhattacharyya), not KL or dot product")
+        self.db = Database(self.vocabulary, database)
+        self.extractor = OrbExtractor(self.config.features)
+        self.calibration = calibration
+        self._segmenter = segmenter
+        self._lifters: dict[int, Any] = {}
+        self._verifiers: dict[int, Any] = {}
+        self.last_similarity: np.ndarray | None = None
+        self._restore_state()
+
+    # ------------------------------------------------------------------ state
+    def _restore_state(self) -> None:
+        n = len(self.db)
+        self._timestamps: list[float] = self.db.column("timestamp") if n else []
+        metas = self.db.column("meta") if n else []
+        self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
+        self._prev_bow: BowVector | None = self.db.entry(n - 1).bow if n else None
+        self._window_n = 0
+        self._window_island: tuple[int, int] | None = None
+        self._window_query = -(10**9)
+        if metas:
+            last = metas[-1]
+            isl = last.get("window_island")
+            if isl is not None:
+                self._window_island = (int(isl[0]), int(isl[1]))
+                self._window_n = int(last.get("window_n", 0))
+                self._window_query = int(last.get("window_query", n - 1))
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> LoopDetector:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __len__(self) -> int:
+        return len(self.db)
+
+    # ------------------------------------------------------------------ helpers
+    def _segment(self, frame: Frame) -> Any:
+        from ..semantics.inference import SegmentationModel, SegmentationResult
+
+        if self.config.semantic_source == "labels":
+            if frame.labels is None:
+                raise InputError(f"frame {frame.index} ({frame.name}): semantic_source='labels' but "
+                                 "the frame has no label image")
+            lab = np.asarray(frame.labels, np.uint8)
+            h, w = lab.shape
+            return SegmentationResult(lab, np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+                                      0, np.zeros((11, 1, 1), np.float32))
+        if self._segmenter is None:
+            model = SegmentationModel.load()
+            t = self.config.segmentation_samples
+            self._segmenter = lambda image: model.predict(image, t)
+        return self._segmenter(frame.image)
+
+    def _calib(self, frame: Frame) -> Any | None:
+        return frame.calibration if frame.calibration is not None else self.calibration
+
+    def _lift(self, frame: Frame, features: Features, calib: Any | None) -> Any | None:
+        """3D points of the features in the frame's camera (Points3D), or None."""
+        from ..geometry import NoiseModel, StereoLifter, lift_depth, lift_map_points
+
+        if frame.points3d is not None:
+            pts = np.asarray(frame.points3d)
+            if pts.shape != (len(features), 3):
+                raise InputError(f"frame {frame.index}: points3d has shape {pts.shape}, expected "
+                                 f"({len(features)}, 3), one per feature")
+            noise = NoiseModel.for_calibration(calib) if calib is not None else NoiseModel(0.01, 500.0)
+            return lift_map_points(pts, noise, octaves=features.octaves)
+        if calib is None:
+            return None
+        if frame.right is not None and calib.is_stereo:
+            lifter = self._lifters.get(id(calib))
+            if lifter is None:
+                lifter = self._lifters[id(calib)] = StereoLifter(calib)
+            return lifter.lift(features, frame.image, frame.right)
+        if frame.depth is not None:
+            return lift_depth(features, frame.depth, calib.left)
+        return None
+
+    def _verifier(self, calib: Any | None) -> Any:
+        from ..config import merge
+        from ..verification.verifier import Verifier
+
+        key = id(calib)
+        v = self._verifiers.get(key)
+        if v is None:
+            cfg = self.config.verification
+            if cfg is None:
+                raise ConfigError("verification is off in this configuration")
+            if calib is None:
+                if cfg.method == "pnp":
+                    raise ConfigError("PnP verification needs a calibration (the query camera)")
+                v = Verifier(merge(cfg, {"min_pnp_inliers": 0}))
+            else:
+                v = Verifier.from_calibration(calib, cfg)
+            self._verifiers[key] = v
+        return v
+
+    def _exclusion_limit(self, timestamp: float) -> int:
+        """Entries with id below this may be proposed (the recent window excluded)."""
+        q = self.config.query
+        n = len(self.db)
+        hi = n - q.exclude_recent
+        if q.exclude_recent_s is not None and math.isfinite(timestamp) and self._timestamps:
+            ts = np.asarray(self._timestamps)
+            newer = np.flatnonzero(np.nan_to_num(ts, nan=-np.inf) > timestamp - q.exclude_recent_s)
+            if newer.size:
+                hi = min(hi, int(newer[0]))
+        return max(hi, 0)
+
+    def _update_window(self, island: Island, entry: int) -> int:
+        """DLoopDetector's temporal window: consecutive consistent queries including this one."""
+        q = self.config.query
+        if self._window_island is None or entry - self._window_query > q.max_query_gap:
+            self._window_n = 1
+        else:
+            a1, a2 = self._window_island
+            b1, b2 = island.first, island.last
+            fit = (b1 <= a1 <= b2) or (a1 <= b1 <= a2)
+            if not fit:
+                fit = max(a1 - b2, b1 - a2) <= q.temporal_gap
+            self._window_n = self._window_n + 1 if fit else 1
+        self._window_island = (island.first, island.last)
+        self._window_query = entry
+        return self._window_n
+
+    # ------------------------------------------------------------------ the loop
+    def process(self, frame: Frame, features: Features | None = None) -> LoopDecision:
+        """Detect a loop for one frame, then store the frame.
+
+        Args:
+            frame: the frame (image, timestamp, optional right / depth image, map points,
+                calibration, pose).
+            features: the frame's features when a SLAM system hands its own in (their order
+                must match ``frame.points3d``); extracted here otherwise.
+
+        Returns:
+            the decision, with the stage that decided and the time of every stage.
+        """
+        cfg = self.config
+        timings: dict[str, float] = {}
+        t_start = t = time.perf_counter()
+
+        def lap(name: str) -> None:
+            nonlocal t
+            now = time.perf_counter()
+            timings[name] = (now - t) * 1e3
+            t = now
+
+        if features is None:
+            if frame.points3d is not None:
+                raise InputError(f"frame {frame.index}: map points need the SLAM system's own "
+                                 "features (process(frame, features=...)) to pair with")
+            features = self.extractor.extract(to_grey(frame.image, f"frame {frame.index} image"))
+        lap("extract")
+        n_features = len(features)
+        calib = self._calib(frame)
+
+        mask_fallback = False
+        keep = None
+        if cfg.masking is not None and cfg.masking.mode != "none" and n_features:
+            from ..semantics.masking import select_features
+
+            seg = self._segment(frame)
+            lap("segment")
+            kept, report = select_features(features, seg, cfg.masking)
+            mask_fallback = bool(report.fallback)
+            if not mask_fallback:
+                keep = np.flatnonzero(report.passed)
+            features = kept
+            lap("mask")
+
+        bow, fvec = self.vocabulary.transform(features.descriptors)
+        lap("transform")
+
+        points = None
+        if cfg.verification is not None:
+            if frame.points3d is not None and keep is not None:
+                frame = _with_points(frame, np.asarray(frame.points3d)[keep])
+            points = self._lift(frame, features, calib)
+            lap("lift")
+
+        entry = len(self.db)
+        decision_kw: dict[str, Any] = {}
+        status = self._query(bow, frame, entry, decision_kw)
+        lap("query")
+
+        verification = None
+        if status is None:
+            cand = decision_kw["candidate"]
+            if cfg.verification is None:
+                status = Status.LOOP_DETECTED
+            else:
+                from ..verification.verifier import View
+
+                verifier = self._verifier(calib)
+                verification = verifier.verify_entry(View(features, fvec, points), self.db.entry(cand))
+                status = Status.LOOP_DETECTED if verification.accepted else Status.NO_GEOMETRICAL_CONSISTENCY
+            lap("verify")
+
+        meta: dict[str, Any] = {"frame": int(frame.index), "name": frame.name}
+        if self._window_island is not None:
+            meta.update(window_island=list(self._window_island), window_n=self._window_n,
+                        window_query=self._window_query)
+        xyz = None if points is None else points.xyz
+        self.db.add(bow, fvec, features, points3d=xyz, timestamp=float(frame.timestamp),
+                    pose=frame.pose, meta=meta)
+        self._timestamps.append(float(frame.timestamp))
+        self._entry_frames.append(int(frame.index))
+        self._prev_bow = bow
+        lap("add")
+        timings["total"] = (time.perf_counter() - t_start) * 1e3
+        cand = decision_kw.get("candidate", -1)
+        return LoopDecision(
+            frame_index=int(frame.index), entry_id=entry, status=status,
+            candidate=cand, candidate_frame=self._entry_frames[cand] if cand >= 0 else -1,
+            raw_score=decision_kw.get("raw_score", 0.0), score=decision_kw.get("score", 0.0),
+            nss_factor=decision_kw.get("nss_factor", math.nan), island=decision_kw.get("island"),
+            consistent=decision_kw.get("consistent", 0), verification=verification,
+            n_features=n_features, n_kept=len(features), mask_fallback=mask_fallback, timings=timings,
+        )
+
+    def _query(self, bow: BowVector, frame: Frame, entry: int, out: dict[str, Any]) -> Status | None:
+        """Steps 3-4; returns the rejecting status, or None when a candidate must be verified."""
+        q = self.config.query
+        hi = self._exclusion_limit(float(frame.timestamp))
+        if self.config.similarity:
+            self.last_similarity = self.db.scores(bow).astype(np.float32)
+        if hi <= 0:
+            return Status.CLOSE_MATCHES_ONLY
+        results = self.db.query(bow, max_results=q.max_results, max_id=hi)
+        if not results:
+            return Status.NO_DB_RESULTS
+        ids = np.array([r.entry_id for r in results])
+        raw = np.array([r.score for r in results])
+        ns = 1.0
+        if q.use_nss:
+            if self._prev_bow is None:
+                return Status.LOW_NSS_FACTOR
+            ns = score(bow, self._prev_bow, self.vocabulary.scoring)
+            out["nss_factor"] = ns
+            if ns < q.min_nss_factor:
+                return Status.LOW_NSS_FACTOR
+        norm = raw / ns
+        ok = norm >= q.alpha
+        best = int(np.argmax(norm))
+        out.update(candidate=int(ids[best]), raw_score=float(raw[best]), score=float(norm[best]))
+        if not ok.any():
+            return Status.LOW_SCORES
+        islands = compute_islands(ids[ok], norm[ok], q.island_gap)
+        island = max(islands, key=lambda i: i.score)
+        consistent = self._update_window(island, entry)
+        out.update(candidate=island.best, raw_score=float(raw[ids == island.best][0]),
+                   score=island.best_score, island=island, consistent=consistent)
+        if consistent < q.temporal_k:
+            return Status.NO_TEMPORAL_CONSISTENCY
+        return None
+
+    def config_dict(self) -> dict[str, Any]:
+        return to_dict(self.config)
+
+
+def _with_points(frame: Frame, points: np.ndarray) -> Frame:
+    import dataclasses
+
+    return dataclasses.replace(frame, points3d=points)

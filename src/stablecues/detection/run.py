@@ -1,0 +1,165 @@
+"""Running the detector over a whole dataset into a run directory (what ``stablecues run`` does)."""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from ..config import to_dict
+from ..evaluation.runs import RunWriter
+from .config import DetectorConfig
+from .decision import LoopDecision
+from .detector import LoopDetector
+
+log = logging.getLogger(__name__)
+
+STAGES = ("extract", "segment", "mask", "transform", "lift", "query", "verify", "add", "total")
+
+
+@dataclass
+class RunSummary:
+    """What a run did: frames, loops, statuses, time per frame, where it is."""
+
+    out_dir: Path
+    frames: int
+    loops: int
+    statuses: dict[str, int]
+    ms_per_frame: float
+    mask_fallbacks: int
+    pictures: list[Path] = field(default_factory=list)
+
+
+def run_dataset(
+    dataset: Any,
+    config: DetectorConfig,
+    out_dir: str | Path,
+    *,
+    preset_name: str = "custom",
+    meta: dict[str, Any] | None = None,
+    database: str | Path | None = None,
+    resume: bool = False,
+    max_frames: int | None = None,
+    pictures: int = 4,
+    progress: bool = True,
+    segmenter: Any | None = None,
+) -> RunSummary:
+    """Run the loop detector over ``dataset`` and write a run directory.
+
+    Args:
+        dataset: a :class:`stablecues.datasets.base.Dataset` (frames in order).
+        config: the detector settings.
+        out_dir: the run directory (decisions.csv, similarity.npy, config.json, meta.json, ...).
+        preset_name: the preset's name, recorded in meta.json.
+        meta: more to record (dataset path, format, ground truth file).
+        database: keep the detector's database in this file (default: ``out_dir/map.sqlite``).
+        resume: continue an interrupted run (its database and decisions) instead of starting over.
+        max_frames: stop after this many frames (all when None).
+        pictures: how many match pictures of accepted loops to save (evenly spread).
+        progress: show a progress bar.
+        segmenter: replaces the shipped segmentation network (tests, other models).
+
+    Returns:
+        a summary of the run.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    db_path = Path(database) if database is not None else out / "map.sqlite"
+    if not resume and db_path.exists():
+        for suffix in ("", "-wal", "-shm"):
+            Path(str(db_path) + suffix).unlink(missing_ok=True)
+    n = len(dataset) if max_frames is None else min(len(dataset), max_frames)
+    run_meta = {"preset": preset_name, "frames": n, "exclude": config.query.exclude_recent,
+                **(meta or {})}
+    writer = RunWriter(out, to_dict(config), run_meta, stages=STAGES,
+                       mode="resume" if resume else "overwrite")
+    detector = LoopDetector(config, database=db_path, segmenter=segmenter)
+    start = writer.next_frame
+    if len(detector) != start:
+        raise_mismatch(out, len(detector), start)
+    sim_path = out / "similarity.npy"
+    sim = np.zeros((n, n), np.float32)
+    if resume and sim_path.exists():
+        old = np.load(sim_path)
+        k = min(old.shape[0], n)
+        sim[:k, :k] = old[:k, :k]
+    statuses: Counter[str] = Counter()
+    accepted: list[LoopDecision] = []
+    fallbacks = 0
+    totals: list[float] = []
+    frames = iter(dataset)
+    bar = tqdm(total=n, initial=start, desc=f"run {preset_name}", unit="frame", disable=not progress)
+    try:
+        for i, frame in enumerate(frames):
+            if i >= n:
+                break
+            if i < start:
+                continue
+            d = detector.process(frame)
+            statuses[d.status.value] += 1
+            fallbacks += int(d.mask_fallback)
+            totals.append(d.timings["total"])
+            if d.accepted:
+                accepted.append(d)
+            row = detector.last_similarity
+            if row is not None:
+                sim[i, : min(row.size, i)] = row[: min(row.size, i)]
+            v = d.verification
+            extra = {"n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
+                     "consistent": d.consistent, "nss": d.nss_factor}
+            if v is not None:
+                extra.update(verifier=str(v.method), verification=str(v.status), reason=v.reason,
+                             inliers=int(np.count_nonzero(v.inliers)), triangles_agree=v.n_triangles_agree)
+                if d.relative_pose is not None:
+                    extra["relative_pose"] = d.relative_pose.tolist()
+            writer.add(d.frame_index, float(frame.timestamp), d.status.value, d.candidate_frame,
+                       d.score if d.candidate >= 0 else float("nan"),
+                       d.raw_score if d.candidate >= 0 else float("nan"),
+                       d.accepted, d.timings, extra)
+            bar.update(1)
+            if (i + 1) % 200 == 0:
+                writer.set_similarity(sim[: i + 1, : i + 1])
+    finally:
+        bar.close()
+        writer.set_similarity(sim)
+        detector.close()
+    saved = _match_pictures(dataset, accepted, writer, pictures, config)
+    writer.close()
+    return RunSummary(out, len(totals), len(accepted), dict(statuses),
+                      float(np.mean(totals)) if totals else float("nan"), fallbacks, saved)
+
+
+def raise_mismatch(out: Path, entries: int, rows: int) -> None:
+    from ..errors import DatasetError
+
+    raise DatasetError(f"{out}: the map holds {entries} frames but decisions.csv has {rows}; "
+                       "cannot resume this run (start it again without --resume)")
+
+
+def _match_pictures(dataset: Any, accepted: list[LoopDecision], writer: RunWriter, count: int,
+                    config: DetectorConfig) -> list[Path]:
+    """Pictures of a few accepted loops (evenly spread), when the drawing module is there."""
+    if count <= 0 or not accepted:
+        return []
+    try:
+        from ..verification.plot import draw_verification
+    except ImportError:  # drawing lands with the verification plots
+        return []
+    picks = [accepted[int(i)] for i in np.linspace(0, len(accepted) - 1, min(count, len(accepted)))]
+    saved = []
+    for d in picks:
+        if d.verification is None:
+            continue
+        try:
+            q = dataset[d.frame_index]
+            c = dataset[d.candidate_frame]
+        except (TypeError, IndexError, KeyError):
+            return saved
+        image = draw_verification(q.image, c.image, d.verification)
+        saved.append(writer.add_match_picture(f"loop_{d.frame_index:05d}_{d.candidate_frame:05d}", image))
+    return saved
