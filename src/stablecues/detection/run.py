@@ -110,7 +110,7 @@ def run_dataset(
             if row is not None:
                 sim[i, : min(row.size, i)] = row[: min(row.size, i)]
             v = d.verification
-            extra = {"n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
+            extra: dict[str, Any] = {"n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
                      "consistent": d.consistent, "nss": d.nss_factor}
             if v is not None:
                 extra.update(verifier=str(v.method), verification=str(v.status), reason=v.reason,
@@ -151,7 +151,7 @@ def _match_pictures(dataset: Any, accepted: list[LoopDecision], writer: RunWrite
     except ImportError:  # drawing lands with the verification plots
         return []
     picks = [accepted[int(i)] for i in np.linspace(0, len(accepted) - 1, min(count, len(accepted)))]
-    saved = []
+    saved: list[Path] = []
     for d in picks:
         if d.verification is None:
             continue
