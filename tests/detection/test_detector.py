@@ -1,0 +1,180 @@
+"""LoopDetector: islands, a revisit found, determinism, a killed detector continues, the CLI."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from stablecues.cli.main import main
+from stablecues.datasets.base import Frame
+from stablecues.detection import LoopDetector, Status, compute_islands, preset
+from stablecues.errors import ConfigError
+
+FRAMES = 60
+REVISIT_FROM = 44  # frames 44.. look at the places of frames 4..
+
+
+def panorama(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.full((300, 2400), 110, np.uint8)
+    for _ in range(2500):
+        x, y = int(rng.integers(0, 2400)), int(rng.integers(0, 300))
+        if rng.random() < 0.5:
+            cv2.rectangle(
+                img,
+                (x, y),
+                (x + int(rng.integers(3, 25)), y + int(rng.integers(3, 25))),
+                int(rng.integers(0, 256)),
+                -1,
+            )
+        else:
+            cv2.circle(img, (x, y), int(rng.integers(2, 12)), int(rng.integers(0, 256)), -1)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+def place_of(i: int) -> int:
+    """x offset of frame i: a drive along the panorama, then a revisit of its start."""
+    if i < REVISIT_FROM:
+        return 40 * i
+    return 40 * (i - REVISIT_FROM + 4) + 7  # 7 px off the first pass
+
+
+def make_frames() -> list[Frame]:
+    pano = panorama()
+    frames = []
+    for i in range(FRAMES):
+        x = place_of(i)
+        frames.append(
+            Frame(index=i, name=f"{i:04d}.png", timestamp=float(i), image=pano[20:260, x : x + 320].copy())
+        )
+    return frames
+
+
+def ground_truth() -> np.ndarray:
+    gt = np.zeros((FRAMES, FRAMES), bool)
+    for i in range(REVISIT_FROM, FRAMES):
+        for j in range(REVISIT_FROM):
+            gt[i, j] = abs(place_of(i) - place_of(j)) <= 60
+    return gt
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return make_frames()
+
+
+def fast(name: str) -> object:
+    return preset(name, {"query": {"exclude_recent": 10, "temporal_k": 2}, "features": {"n_features": 400}})
+
+
+def test_islands_group_nearby_ids() -> None:
+    islands = compute_islands(np.array([10, 3, 11, 30, 4, 13]), np.array([0.5, 0.2, 0.9, 0.4, 0.1, 0.3]), 2)
+    assert [(i.first, i.last, i.best) for i in islands] == [(3, 4, 3), (10, 13, 11), (30, 30, 30)]
+    assert islands[1].score == pytest.approx(1.7) and islands[1].best_score == pytest.approx(0.9)
+    assert compute_islands(np.zeros(0, int), np.zeros(0), 3) == []
+
+
+def test_revisit_is_detected_and_nothing_else(frames: list[Frame]) -> None:
+    det = LoopDetector(fast("bow"))  # type: ignore[arg-type]
+    decisions = [det.process(f) for f in frames]
+    gt = ground_truth()
+    loops = [d for d in decisions if d.accepted]
+    assert len(loops) >= 8
+    for d in loops:
+        assert d.frame_index >= REVISIT_FROM and gt[d.frame_index, d.candidate_frame]
+        assert d.verification is not None and d.verification.accepted
+    assert decisions[0].status == Status.CLOSE_MATCHES_ONLY
+    assert all(set(d.timings) >= {"extract", "transform", "query", "add", "total"} for d in decisions)
+
+
+def test_same_frames_same_decisions(frames: list[Frame]) -> None:
+    def statuses() -> list[tuple[str, int, float]]:
+        det = LoopDetector(fast("bow"))  # type: ignore[arg-type]
+        return [(d.status.value, d.candidate, round(d.score, 9)) for d in map(det.process, frames)]
+
+    assert statuses() == statuses()
+
+
+def test_killed_and_reopened_detector_continues(frames: list[Frame], tmp_path: Path) -> None:
+    cfg = fast("bow")
+    whole = LoopDetector(cfg)  # type: ignore[arg-type]
+    expected = [(d.status, d.candidate, d.score) for d in map(whole.process, frames)]
+    db = tmp_path / "map.sqlite"
+    first = LoopDetector(cfg, database=db)  # type: ignore[arg-type]
+    got = [(d.status, d.candidate, d.score) for d in map(first.process, frames[:47])]
+    del first  # no close(): as if the process died here
+    second = LoopDetector(cfg, database=db)  # type: ignore[arg-type]
+    assert len(second) == 47
+    got += [(d.status, d.candidate, d.score) for d in map(second.process, frames[47:])]
+    assert [g[:2] for g in got] == [e[:2] for e in expected]
+    assert all(
+        math.isclose(g[2], e[2], rel_tol=1e-6, abs_tol=1e-9) for g, e in zip(got, expected, strict=True)
+    )
+
+
+def test_unknown_preset_and_setting() -> None:
+    with pytest.raises(ConfigError, match="unknown preset"):
+        preset("nope")
+    with pytest.raises(ConfigError, match="unknown setting"):
+        preset("bow", {"query": {"alpah": 0.1}})
+
+
+def test_cli_run_and_eval_end_to_end(
+    frames: list[Frame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "seq"
+    (folder / "images").mkdir(parents=True)
+    for f in frames:
+        cv2.imwrite(str(folder / "images" / f.name), f.image)
+    np.save(folder / "loops.npy", ground_truth())
+    out = tmp_path / "run"
+    assert (
+        main(
+            [
+                "run",
+                str(folder),
+                "--format",
+                "folder",
+                "--preset",
+                "bow",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--set",
+                "query.exclude_recent=10",
+                "--set",
+                "query.temporal_k=2",
+                "--set",
+                "features.n_features=400",
+            ]
+        )
+        == 0
+    )
+    assert (out / "decisions.csv").exists() and (out / "similarity.npy").exists()
+    assert (
+        main(
+            [
+                "eval",
+                str(out),
+                "--gt",
+                str(folder / "loops.npy"),
+                "--protocol",
+                "tolerance",
+                "--tolerance",
+                "1",
+                "--json",
+                str(tmp_path / "e.json"),
+            ]
+        )
+        == 0
+    )
+    import json
+
+    result = json.loads((tmp_path / "e.json").read_text())
+    assert result["fp"] == 0 and result["tp"] >= 8 and result["recall_at_100p"] > 0.4
+    sim = np.load(out / "similarity.npy")
+    assert sim.shape == (FRAMES, FRAMES) and np.allclose(np.triu(sim), 0)
