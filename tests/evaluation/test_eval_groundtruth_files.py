@@ -166,3 +166,18 @@ def test_real_vprbench_tables() -> None:
         assert gt.n == largest + 1 + len(table)
         assert gt.query_mask is not None and gt.provenance()["gt_notes"]["format"] == "vprbench"
         check_loop_matrix(gt.matrix)
+
+
+def test_mat_v73_hdf5(tmp_path: Path) -> None:
+    h5py = pytest.importorskip("h5py", reason="h5py not installed (needed only for MATLAB v7.3 files)")
+    path = tmp_path / "v73.mat"
+    with h5py.File(path, "w", userblock_size=512) as fh:
+        fh.create_dataset("truth", data=LOWER.T)  # HDF5 holds MATLAB's column-major matrix transposed
+    header = (
+        b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 ."
+    )
+    with path.open("r+b") as fh:
+        fh.write(header.ljust(116) + b"\x00" * 8 + b"\x00\x02IM")
+    gt = load_ground_truth(path)
+    assert gt.variable == "truth" and not gt.transposed
+    np.testing.assert_array_equal(gt.matrix, LOWER.astype(bool))
