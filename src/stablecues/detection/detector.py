@@ -22,6 +22,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,7 @@ from ..datasets.base import Frame
 from ..errors import ConfigError, InputError
 from ..features import OrbExtractor
 from ..imageio import to_grey
-from ..types import BowVector, Features
+from ..types import BowVector, Features, FeatureVector
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
 from .decision import Island, LoopDecision, Status
@@ -220,7 +221,7 @@ class LoopDetector:
         return self._window_n
 
     # ------------------------------------------------------------------ the loop
-    def process(self, frame: Frame, features: Features | None = None) -> LoopDecision:
+    def process(self, frame: Frame, features: Features | None = None, *, store: bool = True) -> LoopDecision:
         """Detect a loop for one frame, then store the frame.
 
         Args:
@@ -228,10 +229,46 @@ class LoopDetector:
                 calibration, pose).
             features: the frame's features when a SLAM system hands its own in (their order
                 must match ``frame.points3d``); extracted here otherwise.
+            store: add the frame to the database afterwards (False: a pure query, as for the
+                query pass of a place-recognition benchmark).
 
         Returns:
             the decision, with the stage that decided and the time of every stage.
         """
+        prep = self._prepare(frame, features)
+        timings, t = prep.timings, time.perf_counter()
+        entry = len(self.db)
+        found: dict[str, Any] = {}
+        status = self._query(prep.bow, frame, entry, found)
+        timings["query"] = (time.perf_counter() - t) * 1e3
+        verification = None
+        if status is None:
+            t = time.perf_counter()
+            status, verification = self._verify(prep, found["candidate"])
+            timings["verify"] = (time.perf_counter() - t) * 1e3
+        if store:
+            self._store(frame, prep)
+        timings["total"] = (time.perf_counter() - prep.t_start) * 1e3
+        cand = found.get("candidate", -1)
+        return LoopDecision(
+            frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
+            candidate=cand, candidate_frame=self._entry_frames[cand] if cand >= 0 else -1,
+            raw_score=found.get("raw_score", 0.0), score=found.get("score", 0.0),
+            nss_factor=found.get("nss_factor", math.nan), island=found.get("island"),
+            consistent=found.get("consistent", 0), verification=verification,
+            n_features=prep.n_features, n_kept=len(prep.features), mask_fallback=prep.mask_fallback,
+            timings=timings,
+        )
+
+    def store(self, frame: Frame, features: Features | None = None) -> int:
+        """Add a frame to the database without looking for a loop; returns its entry id."""
+        prep = self._prepare(frame, features)
+        entry = len(self.db)
+        self._store(frame, prep)
+        return entry
+
+    def _prepare(self, frame: Frame, features: Features | None) -> _Prepared:
+        """Features, semantic selection, BoW and direct index, 3D points of one frame."""
         cfg = self.config
         timings: dict[str, float] = {}
         t_start = t = time.perf_counter()
@@ -249,8 +286,6 @@ class LoopDetector:
             features = self.extractor.extract(to_grey(frame.image, f"frame {frame.index} image"))
         lap("extract")
         n_features = len(features)
-        calib = self._calib(frame)
-
         mask_fallback = False
         keep = None
         if cfg.masking is not None and cfg.masking.mode != "none" and n_features:
@@ -264,56 +299,39 @@ class LoopDetector:
                 keep = np.flatnonzero(report.passed)
             features = kept
             lap("mask")
-
         bow, fvec = self.vocabulary.transform(features.descriptors)
         lap("transform")
-
         points = None
         if cfg.verification is not None:
             if frame.points3d is not None and keep is not None:
                 frame = _with_points(frame, np.asarray(frame.points3d)[keep])
-            points = self._lift(frame, features, calib)
+            points = self._lift(frame, features, self._calib(frame))
             lap("lift")
+        return _Prepared(features, bow, fvec, points, n_features, mask_fallback, timings, t_start,
+                         self._calib(frame))
 
-        entry = len(self.db)
-        decision_kw: dict[str, Any] = {}
-        status = self._query(bow, frame, entry, decision_kw)
-        lap("query")
+    def _verify(self, prep: _Prepared, candidate: int) -> tuple[Status, Any]:
+        if self.config.verification is None:
+            return Status.LOOP_DETECTED, None
+        from ..verification.verifier import View
 
-        verification = None
-        if status is None:
-            cand = decision_kw["candidate"]
-            if cfg.verification is None:
-                status = Status.LOOP_DETECTED
-            else:
-                from ..verification.verifier import View
+        verifier = self._verifier(prep.calibration)
+        result = verifier.verify_entry(View(prep.features, prep.fvec, prep.points), self.db.entry(candidate))
+        return (Status.LOOP_DETECTED if result.accepted else Status.NO_GEOMETRICAL_CONSISTENCY), result
 
-                verifier = self._verifier(calib)
-                verification = verifier.verify_entry(View(features, fvec, points), self.db.entry(cand))
-                status = Status.LOOP_DETECTED if verification.accepted else Status.NO_GEOMETRICAL_CONSISTENCY
-            lap("verify")
-
+    def _store(self, frame: Frame, prep: _Prepared) -> None:
+        t = time.perf_counter()
         meta: dict[str, Any] = {"frame": int(frame.index), "name": frame.name}
         if self._window_island is not None:
             meta.update(window_island=list(self._window_island), window_n=self._window_n,
                         window_query=self._window_query)
-        xyz = None if points is None else points.xyz
-        self.db.add(bow, fvec, features, points3d=xyz, timestamp=float(frame.timestamp),
+        xyz = None if prep.points is None else prep.points.xyz
+        self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
                     pose=frame.pose, meta=meta)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
-        self._prev_bow = bow
-        lap("add")
-        timings["total"] = (time.perf_counter() - t_start) * 1e3
-        cand = decision_kw.get("candidate", -1)
-        return LoopDecision(
-            frame_index=int(frame.index), entry_id=entry, status=status,
-            candidate=cand, candidate_frame=self._entry_frames[cand] if cand >= 0 else -1,
-            raw_score=decision_kw.get("raw_score", 0.0), score=decision_kw.get("score", 0.0),
-            nss_factor=decision_kw.get("nss_factor", math.nan), island=decision_kw.get("island"),
-            consistent=decision_kw.get("consistent", 0), verification=verification,
-            n_features=n_features, n_kept=len(features), mask_fallback=mask_fallback, timings=timings,
-        )
+        self._prev_bow = prep.bow
+        prep.timings["add"] = (time.perf_counter() - t) * 1e3
 
     def _query(self, bow: BowVector, frame: Frame, entry: int, out: dict[str, Any]) -> Status | None:
         """Steps 3-4; returns the rejecting status, or None when a candidate must be verified."""
@@ -353,6 +371,21 @@ class LoopDetector:
 
     def config_dict(self) -> dict[str, Any]:
         return to_dict(self.config)
+
+
+@dataclass
+class _Prepared:
+    """One frame, ready to query and store."""
+
+    features: Features
+    bow: BowVector
+    fvec: FeatureVector
+    points: Any | None
+    n_features: int
+    mask_fallback: bool
+    timings: dict[str, float]
+    t_start: float
+    calibration: Any | None
 
 
 def _with_points(frame: Frame, points: np.ndarray) -> Frame:

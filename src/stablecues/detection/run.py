@@ -110,8 +110,10 @@ def run_dataset(
             if row is not None:
                 sim[i, : min(row.size, i)] = row[: min(row.size, i)]
             v = d.verification
-            extra: dict[str, Any] = {"n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
-                     "consistent": d.consistent, "nss": d.nss_factor}
+            extra: dict[str, Any] = {
+                "n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
+                "consistent": d.consistent, "nss": d.nss_factor,
+            }
             if v is not None:
                 extra.update(verifier=str(v.method), verification=str(v.status), reason=v.reason,
                              inliers=int(np.count_nonzero(v.inliers)), triangles_agree=v.n_triangles_agree)
