@@ -1,0 +1,131 @@
+"""Settings of geometric verification, with named presets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..config import merge
+from ..errors import ConfigError
+from ..geometry.pose import PnPConfig
+from ..geometry.triangles import TriangleConfig
+
+__all__ = ["VerificationConfig", "PRESETS", "preset"]
+
+_METHODS = ("triangles", "fundamental", "pnp")
+_ACCEPTANCE = ("all", "majority", "at_least")
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Settings of the verifier; the defaults are what we can justify from the noise model.
+
+    Attributes:
+        method: ``"triangles"`` (the paper), ``"pnp"`` or ``"fundamental"`` (DLoopDetector).
+        ratio: Lowe's ratio for matching. 0.8 is Lowe's value; ORB-SLAM uses 0.75 for loop
+            search. Matches are further filtered by the geometry, so we keep more.
+        max_distance: largest Hamming distance of a match (of 256 bits). ORB-SLAM's TH_LOW is
+            50 for frame-to-frame search; a loop sees the place from another viewpoint, and
+            the geometric check is the filter, so 64 (a quarter of the bits).
+        cross_check: require mutual best matches.
+        n_triangles: T, the number of triangles checked.
+        tolerance: ``"noise"`` (default: each side's allowed difference is ``k_sigma`` times its
+            propagated standard deviation) or ``"relative"`` (the paper's fixed fraction).
+        k_sigma: the noise gate; 3 sigma lets a correct side fail with probability 0.27 %.
+        relative_tolerance: the paper's 2 %.
+        min_angle_deg: triangles with a smaller angle are skipped as near-collinear.
+        min_side_sigma: sides shorter than this many of their own sigmas are too small.
+        acceptance: ``"all"`` of T, a strict ``"majority"`` of T, or ``"at_least"`` min_agree
+            (triangles that could not be formed count as disagreeing).
+        min_agree: for ``"at_least"``. Default 2 of 10: a triangle only agrees when all three
+            of its matches are correct, so with a realistic 60-80 % inlier ratio among ranked
+            matches only 20-50 % of true triangles agree (0.6^3 to 0.8^3), which rules out "all"
+            and "majority"; two congruent triangles from wrong matches, under a 3-sigma gate,
+            are improbable, and PnP (``min_pnp_inliers``) must confirm the loop as well.
+        min_pnp_inliers: PnP inliers an accepted loop needs (about 20, METHOD.md section 3;
+            a pose from fewer is not reliable enough for a pose graph). Also the acceptance
+            threshold of the PnP-only verifier.
+        pnp_reprojection_px: PnP RANSAC threshold (see :class:`~stablecues.geometry.PnPConfig`).
+        pnp_iterations: PnP RANSAC iterations.
+        fundamental_threshold_px: DLoopDetector's ``max_reprojection_error`` (2 px).
+        fundamental_confidence: RANSAC confidence of the fundamental matrix (0.99).
+        fundamental_iterations: DLoopDetector's ``max_ransac_iterations`` (500).
+        min_fundamental_inliers: DLoopDetector's ``min_Fpoints`` (12).
+        fallback: without 3D points, fall back to PnP (candidate has 3D) or the fundamental
+            matrix (it has none) instead of rejecting with ``TOO_FEW_3D``.
+    """
+
+    method: str = "triangles"
+    ratio: float = 0.8
+    max_distance: int = 64
+    cross_check: bool = False
+    n_triangles: int = 10
+    tolerance: str = "noise"
+    k_sigma: float = 3.0
+    relative_tolerance: float = 0.02
+    min_angle_deg: float = 10.0
+    min_side_sigma: float = 3.0
+    acceptance: str = "at_least"
+    min_agree: int = 2
+    min_pnp_inliers: int = 20
+    pnp_reprojection_px: float = 4.0
+    pnp_iterations: int = 300
+    fundamental_threshold_px: float = 2.0
+    fundamental_confidence: float = 0.99
+    fundamental_iterations: int = 500
+    min_fundamental_inliers: int = 12
+    fallback: bool = True
+
+    def __post_init__(self) -> None:
+        if self.method not in _METHODS:
+            raise ConfigError(f"verification method {self.method!r}: expected one of {', '.join(_METHODS)}")
+        if self.acceptance not in _ACCEPTANCE:
+            raise ConfigError(f"acceptance {self.acceptance!r}: expected one of {', '.join(_ACCEPTANCE)}")
+        if self.acceptance == "at_least" and not 1 <= self.min_agree <= self.n_triangles:
+            raise ConfigError(
+                f"min_agree must be in 1..n_triangles ({self.n_triangles}), got {self.min_agree}"
+            )
+        if self.min_pnp_inliers < 0 or self.min_fundamental_inliers < 8:
+            raise ConfigError("min_pnp_inliers must be >= 0 and min_fundamental_inliers >= 8")
+        self.triangle_config()  # validates the triangle settings
+        self.pnp_config()
+
+    def triangle_config(self) -> TriangleConfig:
+        return TriangleConfig(
+            n_triangles=self.n_triangles,
+            tolerance=self.tolerance,
+            k_sigma=self.k_sigma,
+            relative_tolerance=self.relative_tolerance,
+            min_angle_deg=self.min_angle_deg,
+            min_side_sigma=self.min_side_sigma,
+        )
+
+    def pnp_config(self) -> PnPConfig:
+        return PnPConfig(reprojection_px=self.pnp_reprojection_px, iterations=self.pnp_iterations)
+
+    @property
+    def triangles_needed(self) -> int:
+        """How many agreeing triangles the acceptance rule needs."""
+        if self.acceptance == "all":
+            return self.n_triangles
+        if self.acceptance == "majority":
+            return self.n_triangles // 2 + 1
+        return self.min_agree
+
+
+#: Named configurations. ``paper``: the paper's triangle check as written: 2 % relative
+#: tolerance, every triangle must agree, no PnP gate; the paper leaves T to the user ("every
+#: three best-scored features" make a triangle), we read it as T = 3. ``dloop``:
+#: DLoopDetector's fundamental-matrix check with its 0.6 ratio. ``pnp``: PnP inliers only.
+PRESETS: dict[str, dict[str, object]] = {
+    "default": {},
+    "paper": {"tolerance": "relative", "acceptance": "all", "min_pnp_inliers": 0, "n_triangles": 3},
+    "dloop": {"method": "fundamental", "ratio": 0.6},
+    "pnp": {"method": "pnp"},
+}
+
+
+def preset(name: str, **overrides: object) -> VerificationConfig:
+    """A named configuration with optional overrides (unknown keys raise ConfigError)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown verification preset {name!r}; known: {', '.join(PRESETS)}")
+    return merge(merge(VerificationConfig(), PRESETS[name]), overrides)
