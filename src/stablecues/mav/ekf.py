@@ -79,6 +79,9 @@ class EkfConfig:
         min_fix: smallest GNSS fix type used (3 = 3D).
         init_window_s: seconds of accelerometer / magnetometer averaged for the initial attitude.
         gnss_reset_s: re-anchor position/velocity on GNSS after it was rejected this long, s.
+        max_imu_gap_s: a longer gap between IMU samples (logging paused, e.g. while disarmed) is
+            not integrated: the state waits and position/velocity are re-anchored on the next
+            GNSS fix.
         use_gnss_velocity, use_gnss_altitude, use_baro, use_mag: switch a measurement off.
     """
 
@@ -100,6 +103,7 @@ class EkfConfig:
     min_fix: int = 3
     init_window_s: float = 1.0
     gnss_reset_s: float = 5.0
+    max_imu_gap_s: float = 1.0
     use_gnss_velocity: bool = True
     use_gnss_altitude: bool = True
     use_baro: bool = True
@@ -293,32 +297,36 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
     i_t, i_gyro, i_acc = imu.t[imu_order], imu.gyro[imu_order], imu.accel[imu_order]
     t_start = max(float(g_t[0]), float(i_t[0]))
 
-    # --- initial attitude from accelerometer and magnetometer around the start
-    w0, w1 = t_start - 0.5 * cfg.init_window_s, t_start + 0.5 * cfg.init_window_s
-    sel = (i_t >= w0) & (i_t <= w1)
-    acc0 = (
-        i_acc[sel].mean(axis=0) if np.any(sel) else i_acc[np.searchsorted(i_t, t_start).clip(0, len(i_t) - 1)]
-    )
-    roll0 = float(np.arctan2(-acc0[1], -acc0[2]))
-    pitch0 = float(np.arctan2(acc0[0], np.hypot(acc0[1], acc0[2])))
     mag = log.mag
-    yaw_sigma = np.pi
-    yaw0 = 0.0
-    if len(mag) and cfg.use_mag:
-        msel = (mag.t >= w0 - 1.0) & (mag.t <= w1 + 1.0)
-        if np.any(msel):
-            yaw0 = mag_heading(mag.field[msel].mean(axis=0), roll0, pitch0, decl)
-            yaw_sigma = 0.3
-    k0 = int(np.searchsorted(g_t, t_start))
-    k0 = min(k0, len(g_t) - 1)
-    if yaw_sigma >= np.pi:
-        vn = gnss.vel_ned[k0]
-        if np.all(np.isfinite(vn[:2])) and np.hypot(vn[0], vn[1]) > 3.0:
-            yaw0, yaw_sigma = float(np.arctan2(vn[1], vn[0])), 0.3
+
+    def level_attitude(w0: float, w1: float) -> tuple[np.ndarray, float]:
+        """Attitude from the mean accelerometer (roll, pitch) and magnetometer (yaw) in [w0, w1];
+        returns the quaternion and the yaw sigma (pi when no heading source)."""
+        sel = (i_t >= w0) & (i_t <= w1)
+        acc = (
+            i_acc[sel].mean(axis=0)
+            if np.any(sel)
+            else i_acc[int(np.searchsorted(i_t, w0).clip(0, len(i_t) - 1))]
+        )
+        roll = float(np.arctan2(-acc[1], -acc[2]))
+        pitch = float(np.arctan2(acc[0], np.hypot(acc[1], acc[2])))
+        yaw, yaw_sigma = 0.0, float(np.pi)
+        if len(mag) and cfg.use_mag:
+            msel = (mag.t >= w0 - 1.0) & (mag.t <= w1 + 1.0)
+            if np.any(msel):
+                yaw, yaw_sigma = mag_heading(mag.field[msel].mean(axis=0), roll, pitch, decl), 0.3
+        if yaw_sigma >= np.pi:
+            kk = min(int(np.searchsorted(g_t, w0)), len(g_t) - 1)
+            vn = gnss.vel_ned[kk]
+            if np.all(np.isfinite(vn[:2])) and np.hypot(vn[0], vn[1]) > 3.0:
+                yaw, yaw_sigma = float(np.arctan2(vn[1], vn[0])), 0.3
+        return geo.matrix_to_quat(_r_enu_from_euler(roll, pitch, yaw)), yaw_sigma
+
+    q, yaw_sigma = level_attitude(t_start - 0.5 * cfg.init_window_s, t_start + 0.5 * cfg.init_window_s)
+    k0 = min(int(np.searchsorted(g_t, t_start)), len(g_t) - 1)
 
     p = g_pos[k0].copy()
     v = np.nan_to_num(g_vel[k0].copy())
-    q = geo.matrix_to_quat(_r_enu_from_euler(roll0, pitch0, yaw0))
     ba = np.zeros(3)
     bg = np.zeros(3)
     bb = 0.0
@@ -432,12 +440,35 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
         accepted[kind] += 1
         return True
 
+    need_anchor = False
     for e in range(begin, len(all_t)):
         te = float(all_t[e])
         kind = int(all_k[e])
         i = int(all_i[e])
-        predict(te - t_now)
+        if te - t_now > cfg.max_imu_gap_s:
+            # a logging gap (e.g. disarmed): do not integrate across it; the vehicle may have been
+            # moved or set upright, so attitude restarts from accelerometer and compass
+            need_anchor = True
+            q, yaw_sigma = level_attitude(te, te + cfg.init_window_s)
+            P[6:9, :] = 0.0
+            P[:, 6:9] = 0.0
+            P[6, 6] = P[7, 7] = 0.05**2
+            P[8, 8] = yaw_sigma**2
+        else:
+            predict(te - t_now)
         t_now = te
+        if need_anchor and kind == 1:
+            p = g_pos[i].copy()
+            v = np.nan_to_num(g_vel[i].copy())
+            P[0:6, :] = 0.0
+            P[:, 0:6] = 0.0
+            P[0, 0] = P[1, 1] = cfg.gnss_pos_noise**2
+            P[2, 2] = cfg.gnss_alt_noise**2
+            P[3:6, 3:6] = np.eye(3) * 0.5**2
+            resets += 1
+            last_gnss_ok = te
+            need_anchor = False
+            continue
         if kind == 0:
             a_m, w_m = i_acc[i], i_gyro[i]
             out_t.append(te)

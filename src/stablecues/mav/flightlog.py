@@ -224,12 +224,14 @@ class NavSolution:
             quaternion=quat,
         )
 
-    def interpolate(self, times: np.ndarray) -> NavSolution:
+    def interpolate(self, times: np.ndarray, *, max_gap: float = 2.0) -> NavSolution:
         """The solution at ``times`` (s since log start): linear in position and velocity, slerp
-        in attitude. Times outside the solution's span give NaN rows.
+        in attitude. Times outside the solution's span, or inside a gap between two samples longer
+        than ``max_gap`` seconds (logging paused), give NaN rows.
 
         Args:
             times: (M,) float64 seconds since log start.
+            max_gap: longest interval between samples that is interpolated across, seconds.
         """
         times = np.asarray(times, dtype=np.float64).reshape(-1)
         m = len(times)
@@ -239,6 +241,10 @@ class NavSolution:
         std = np.full((m, 3), np.nan)
         if len(self) > 0:
             inside = (times >= self.t[0]) & (times <= self.t[-1])
+            if len(self) > 1:
+                k = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self) - 2)
+                exact = np.isin(times, self.t)
+                inside &= (self.t[k + 1] - self.t[k] <= max_gap) | exact
             ti = times[inside]
             for k in range(3):
                 pos[inside, k] = np.interp(ti, self.t, self.position[:, k])
