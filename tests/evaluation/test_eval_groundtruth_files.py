@@ -181,3 +181,15 @@ def test_mat_v73_hdf5(tmp_path: Path) -> None:
     gt = load_ground_truth(path)
     assert gt.variable == "truth" and not gt.transposed
     np.testing.assert_array_equal(gt.matrix, LOWER.astype(bool))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, bool, np.float64, np.int32])
+def test_nonzero_scan_matches_numpy(dtype: type) -> None:
+    from stablecues.evaluation.groundtruth import _nonzero_indices
+
+    rng = np.random.default_rng(1)
+    a = (rng.random((37, 37)) < 0.1).astype(dtype)
+    for arr in (a, np.asfortranarray(a), a[::2, ::2]):
+        rows, cols = _nonzero_indices(arr)
+        want = set(zip(*np.nonzero(arr), strict=True))
+        assert set(zip(rows.tolist(), cols.tolist(), strict=True)) == {(int(i), int(j)) for i, j in want}
