@@ -199,12 +199,14 @@ def _nonzero_indices(arr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Bicocca matrix); scanning the memory in order, 8 bytes at a time for byte-sized dtypes,
     takes well under a second. NaN cells count as zero.
     """
+    order: Literal["C", "F"]
     if arr.flags.c_contiguous:
         order = "C"
     elif arr.flags.f_contiguous:
         order = "F"
     else:
-        return np.nonzero(np.nan_to_num(arr) if arr.dtype.kind == "f" else arr)
+        r, c = np.nonzero(np.nan_to_num(arr) if arr.dtype.kind == "f" else arr)
+        return r.astype(np.int64), c.astype(np.int64)
     flat_view = arr.ravel(order=order)  # no copy: memory order
     if flat_view.dtype.itemsize == 1:
         v = flat_view.view(np.uint8)
