@@ -1,0 +1,143 @@
+"""``stablecues verify``: geometric verification of two images (A = query, B = candidate)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "verify",
+        help="verify that two images show the same place (triangles, PnP or fundamental matrix)",
+        description=(
+            "Verify image A (the query) against image B (the candidate). With stereo or depth, "
+            "keypoints are lifted to 3D and the paper's triangle check runs, then PnP gives the "
+            "relative pose, which takes points from B's camera to A's camera. Without 3D, the "
+            "fundamental-matrix check (DLoopDetector) decides."
+        ),
+    )
+    p.add_argument("image_a", type=Path, help="query image (left image of a stereo pair)")
+    p.add_argument("image_b", type=Path, help="candidate image")
+    p.add_argument(
+        "--calib",
+        required=True,
+        help="calibration: EuRoC sensor.yaml (left), KITTI calib.txt, ORB-SLAM settings yaml, or fr1/fr2/fr3",
+    )
+    p.add_argument("--calib-right", type=Path, help="right camera's EuRoC sensor.yaml, when not found beside")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--right-a", type=Path, help="right image of A (stereo)")
+    g.add_argument("--depth-a", type=Path, help="depth image of A (raw units, scale from the calibration)")
+    p.add_argument("--right-b", type=Path, help="right image of B (stereo)")
+    p.add_argument("--depth-b", type=Path, help="depth image of B")
+    p.add_argument("--depth-scale", type=float, help="depth units per metre (overrides the calibration)")
+    p.add_argument("--method", choices=("triangles", "pnp", "fundamental"), help="verifier (default triangles)")
+    p.add_argument("--preset", default="default", help="settings preset: default, paper, dloop, pnp")
+    p.add_argument("--tolerance", choices=("noise", "relative"), help="triangle side tolerance")
+    p.add_argument("--triangles", type=int, help="number of triangles T")
+    p.add_argument("--acceptance", choices=("all", "majority", "at_least"), help="triangle acceptance rule")
+    p.add_argument("--min-agree", type=int, help="agreeing triangles needed with --acceptance at_least")
+    p.add_argument("--features", type=int, default=2000, help="ORB features per image (default 2000)")
+    p.add_argument("--no-vocabulary", action="store_true", help="brute-force matching instead of the direct index")
+    p.add_argument("--plot", type=Path, help="write a match picture (PNG)")
+    p.add_argument("--json", type=Path, help="write the result as JSON")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from ..config import to_dict
+    from ..errors import InputError
+    from ..geometry import load_calibration, load_euroc_stereo, rotation_angle_deg
+    from ..verification import ImagePairVerifier, preset
+
+    if (args.right_a is None) != (args.right_b is None):
+        raise InputError("give --right-a and --right-b together")
+    if (args.depth_a is None) != (args.depth_b is None):
+        raise InputError("give --depth-a and --depth-b together")
+    if args.right_b is not None and args.depth_b is not None:
+        raise InputError("give right images or depth images, not both")
+
+    calib = (
+        load_euroc_stereo(args.calib, args.calib_right) if args.calib_right else load_calibration(args.calib)
+    )
+    if args.depth_scale is not None:
+        calib = dataclasses.replace(calib, depth_scale=args.depth_scale)
+    overrides = {
+        key: value
+        for key, value in (
+            ("method", args.method),
+            ("tolerance", args.tolerance),
+            ("n_triangles", args.triangles),
+            ("acceptance", args.acceptance),
+            ("min_agree", args.min_agree),
+        )
+        if value is not None
+    }
+    config = preset(args.preset, **overrides)
+    pipeline = ImagePairVerifier(
+        calib, config, n_features=args.features, use_vocabulary=not args.no_vocabulary
+    )
+    out = pipeline.verify(
+        args.image_a,
+        args.image_b,
+        right_a=args.right_a,
+        right_b=args.right_b,
+        depth_a=args.depth_a,
+        depth_b=args.depth_b,
+    )
+    res = out.verification
+
+    decision = "ACCEPTED" if res.accepted else "REJECTED"
+    fallback = " (fallback: no 3D points)" if res.fallback else ""
+    print(f"decision:   {decision} by {res.method.value}{fallback}: {res.status.value}")
+    print(f"reason:     {res.reason}")
+    print(f"matches:    {res.n_matches}   inliers: {res.n_inliers}")
+    if res.triangles:
+        print(f"triangles:  {res.n_triangles_agree} of {len(res.triangles)} agree")
+    if res.rotation is not None and res.translation is not None:
+        t = res.translation
+        print(
+            f"pose B->A:  t = [{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}] m (|t| = {float((t**2).sum()) ** 0.5:.3f} m), "
+            f"rotation {rotation_angle_deg(res.rotation):.2f} deg, reprojection rmse {res.rmse_px:.2f} px"
+        )
+    timing = ", ".join(f"{k} {v:.1f}" for k, v in res.timings.items())
+    print(f"time (ms):  {timing}")
+
+    if args.json:
+        record = {
+            "image_a": str(args.image_a),
+            "image_b": str(args.image_b),
+            "calibration": calib.source,
+            "config": to_dict(config),
+            "n_features": args.features,
+            "result": res.to_dict(),
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(record, indent=1))
+        print(f"json:       {args.json}")
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from ..verification.plot import plot_verification
+
+        h, w = out.query.image.shape[:2]
+        fig, ax = plt.subplots(figsize=(min(18.0, 2 * w / 100 + 1.5), h / 100 + 0.8), dpi=110)
+        plot_verification(
+            ax,
+            out.query.image,
+            out.candidate.image,
+            out.query.view.features,
+            out.candidate.view.features,
+            res,
+        )
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(args.plot, bbox_inches="tight")
+        plt.close(fig)
+        print(f"plot:       {args.plot}")
+    return 0
