@@ -32,14 +32,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--right-b", type=Path, help="right image of B (stereo)")
     p.add_argument("--depth-b", type=Path, help="depth image of B")
     p.add_argument("--depth-scale", type=float, help="depth units per metre (overrides the calibration)")
-    p.add_argument("--method", choices=("triangles", "pnp", "fundamental"), help="verifier (default triangles)")
+    p.add_argument(
+        "--method", choices=("triangles", "pnp", "fundamental"), help="verifier (default triangles)"
+    )
     p.add_argument("--preset", default="default", help="settings preset: default, paper, dloop, pnp")
     p.add_argument("--tolerance", choices=("noise", "relative"), help="triangle side tolerance")
     p.add_argument("--triangles", type=int, help="number of triangles T")
     p.add_argument("--acceptance", choices=("all", "majority", "at_least"), help="triangle acceptance rule")
     p.add_argument("--min-agree", type=int, help="agreeing triangles needed with --acceptance at_least")
     p.add_argument("--features", type=int, default=2000, help="ORB features per image (default 2000)")
-    p.add_argument("--no-vocabulary", action="store_true", help="brute-force matching instead of the direct index")
+    p.add_argument(
+        "--no-vocabulary", action="store_true", help="brute-force matching instead of the direct index"
+    )
     p.add_argument("--plot", type=Path, help="write a match picture (PNG)")
     p.add_argument("--json", type=Path, help="write the result as JSON")
     return p
@@ -99,8 +103,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"triangles:  {res.n_triangles_agree} of {len(res.triangles)} agree")
     if res.rotation is not None and res.translation is not None:
         t = res.translation
+        norm = float((t**2).sum()) ** 0.5
         print(
-            f"pose B->A:  t = [{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}] m (|t| = {float((t**2).sum()) ** 0.5:.3f} m), "
+            f"pose B->A:  t = [{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}] m (|t| = {norm:.3f} m), "
             f"rotation {rotation_angle_deg(res.rotation):.2f} deg, reprojection rmse {res.rmse_px:.2f} px"
         )
     timing = ", ".join(f"{k} {v:.1f}" for k, v in res.timings.items())

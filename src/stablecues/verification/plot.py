@@ -123,10 +123,9 @@ def plot_verification(
         )
     if title is None:
         decision = "ACCEPTED" if result.accepted else f"REJECTED ({result.status.value})"
-        title = (
-            f"{decision} by {result.method.value}: {len(m)} matches, {result.n_inliers} inliers"
-            + (f", {result.n_triangles_agree}/{len(result.triangles)} triangles agree" if result.triangles else "")
-        )
+        title = f"{decision} by {result.method.value}: {len(m)} matches, {result.n_inliers} inliers"
+        if result.triangles:
+            title += f", {result.n_triangles_agree}/{len(result.triangles)} triangles agree"
     ax.set_title(title, fontsize=9)
     if colorbar and ax.figure is not None:
         sm = ScalarMappable(norm=norm, cmap=CONFIDENCE_CMAP)
