@@ -193,3 +193,19 @@ def test_nonzero_scan_matches_numpy(dtype: type) -> None:
         rows, cols = _nonzero_indices(arr)
         want = set(zip(*np.nonzero(arr), strict=True))
         assert set(zip(rows.tolist(), cols.tolist(), strict=True)) == {(int(i), int(j)) for i, j in want}
+
+
+def test_fit_view_per_camera_or_interleaved() -> None:
+    from stablecues.evaluation.groundtruth import fit_view
+
+    full = np.zeros((6, 6), bool)
+    full[4, 0] = full[5, 3] = True
+    gt = GroundTruth(full)
+    left = fit_view(gt, "left", 3)
+    assert left.n == 3 and left.view == "left" and left.matrix[2, 0]
+    assert fit_view(gt, "left", 6) is gt  # already one row per frame: a per-camera copy
+    assert fit_view(gt, "all", 3) is gt
+    with pytest.raises(DatasetError, match="fits neither"):
+        fit_view(gt, "right", 5)
+    odd = GroundTruth(np.zeros((7, 7), bool))
+    assert fit_view(odd, "right", 3).n == 3

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import cast
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -37,8 +38,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--gt-view",
         choices=("all", "left", "right", "pair"),
-        default="all",
-        help="images of an interleaved left/right release (FAB-MAP) to keep",
+        default=None,
+        help="images of an interleaved left/right release (FAB-MAP) to keep "
+        "(default: the run's 'gt_view', else all)",
     )
     p.add_argument(
         "--gt-orientation",
@@ -79,7 +81,7 @@ def format_summary(doc: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from ..evaluation.evaluate import eval_file_name, evaluate_run, save_evaluation
-    from ..evaluation.groundtruth import load_ground_truth
+    from ..evaluation.groundtruth import View, fit_view, load_ground_truth
     from ..evaluation.runs import load_run
     from ..evaluation.timing import format_timing_table
 
@@ -87,9 +89,12 @@ def run(args: argparse.Namespace) -> int:
     gt_path = args.gt or run_.meta.get("ground_truth")
     if not gt_path:
         raise ConfigError(f"{args.run_dir}: no ground truth recorded for this run; pass --gt FILE")
-    gt = load_ground_truth(
-        gt_path, variable=args.gt_variable, orientation=args.gt_orientation, view=args.gt_view
-    )
+    gt = load_ground_truth(gt_path, variable=args.gt_variable, orientation=args.gt_orientation)
+    view = args.gt_view or run_.meta.get("gt_view") or "all"
+    if view not in ("all", "left", "right", "pair"):
+        raise ConfigError(f"{run_.path}: meta.json gt_view {view!r} is not all, left, right or pair")
+    n_frames = run_.meta.get("dataset_frames")
+    gt = fit_view(gt, cast(View, view), int(n_frames) if n_frames is not None else None)
     exclude = args.exclude if args.exclude is not None else int(run_.meta.get("exclude", 0) or 0)
     _, doc = evaluate_run(
         run_,

@@ -218,13 +218,14 @@ class SequenceDataset:
         return self._calibration
 
     def describe(self) -> dict[str, Any]:
-        """JSON-ready summary (for a run's ``meta.json``)."""
+        """JSON-ready summary for a run's ``meta.json``: dataset, name, format, dataset_frames,
+        stereo, depth, labels, poses, calibration and ground_truth (paths or None)."""
         rec0 = self.records[0] if self.records else None
         return {
             "dataset": str(self.root),
             "name": self.name,
             "format": self.format,
-            "frames": len(self),
+            "dataset_frames": len(self),
             "stereo": bool(rec0 and rec0.right is not None),
             "depth": bool(rec0 and rec0.depth is not None),
             "labels": bool(rec0 and rec0.labels is not None),

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from ..errors import DatasetError
-from ..evaluation.groundtruth import GroundTruth, load_ground_truth, select_view
+from ..evaluation.groundtruth import GroundTruth, fit_view, load_ground_truth
 from .base import FrameRecord, SequenceDataset, list_images
 
 FabmapView = Literal["left", "right", "all"]
@@ -44,18 +44,17 @@ class FabmapDataset(SequenceDataset):
         if self.gt_path is None:
             return None
         gt = load_ground_truth(self.gt_path)
-        n = len(self)
-        if gt.n == n:
+        if self.view == "all":
+            if gt.n != len(self):
+                raise DatasetError(
+                    f"{self.gt_path}: expected a {len(self)} x {len(self)} matrix, found {gt.n}"
+                )
             return gt
-        if self.view in ("left", "right") and gt.n in (2 * n, 2 * n + 1):
-            full = gt.matrix[: 2 * n, : 2 * n]
-            matrix = select_view(full, "left" if self.view == "left" else "right")
-            return GroundTruth(
-                matrix, gt.path, gt.sha256, gt.variable, gt.transposed, self.view, None, gt.notes
-            )
-        raise DatasetError(
-            f"{self.gt_path}: {gt.n} x {gt.n} matrix fits neither the {n} {self.view} images nor all images"
-        )
+        return fit_view(gt, "left" if self.view == "left" else "right", len(self))
+
+    def describe(self) -> dict[str, Any]:
+        """As :meth:`SequenceDataset.describe`, plus the ground-truth view for ``stablecues eval``."""
+        return {**super().describe(), "gt_view": self.view}
 
 
 def open_fabmap(path: str | Path, *, view: FabmapView = "left", grey: bool = False) -> FabmapDataset:

@@ -16,6 +16,7 @@ from .evaluate import eval_file_name, evaluate_run, load_evaluation, run_detecti
 from .groundtruth import (
     GroundTruth,
     check_loop_matrix,
+    fit_view,
     ground_truth_from_poses,
     load_ground_truth,
     loops_from_poses,
@@ -49,6 +50,7 @@ __all__ = [
     "check_loop_matrix",
     "eligible_limit",
     "eval_file_name",
+    "fit_view",
     "evaluate_detections",
     "evaluate_run",
     "format_timing_table",

@@ -254,6 +254,36 @@ def select_view(matrix: np.ndarray, view: View) -> np.ndarray:
     return np.tril(pair, -1)
 
 
+def fit_view(gt: GroundTruth, view: View, n_frames: int | None = None) -> GroundTruth:
+    """Apply an interleaved-release view to a loaded ground truth, unless it is already per camera.
+
+    Args:
+        gt: the ground truth as stored (``view="all"``).
+        view: "all", "left", "right" or "pair".
+        n_frames: the dataset's frame count, when known: a matrix already of that size (a
+            per-camera copy such as ``city_GT_final.mat``) is returned as is.
+
+    Returns:
+        The ground truth with the view applied (``gt`` itself when nothing changes).
+
+    Raises:
+        DatasetError: the matrix fits neither ``n_frames`` nor twice it.
+    """
+    if view == "all" or gt.view != "all":
+        return gt
+    if n_frames is not None and gt.n == n_frames:
+        return gt
+    if n_frames is not None and gt.n not in (2 * n_frames, 2 * n_frames + 1):
+        raise DatasetError(
+            f"{gt.path or 'ground truth'}: {gt.n} x {gt.n} fits neither the {n_frames} frames "
+            f"nor the {2 * n_frames} interleaved images of view {view!r}"
+        )
+    even = gt.n - gt.n % 2
+    matrix = select_view(np.ascontiguousarray(gt.matrix[:even, :even]), view)
+    mask = None if gt.query_mask is None else np.asarray(gt.query_mask[:even:2])
+    return GroundTruth(matrix, gt.path, gt.sha256, gt.variable, gt.transposed, view, mask, dict(gt.notes))
+
+
 def vprbench_matrix(
     table: np.ndarray, n_ref: int | None = None, *, source: str = "ground_truth_new.npy"
 ) -> tuple[np.ndarray, np.ndarray]:
