@@ -137,8 +137,6 @@ def run(args: argparse.Namespace) -> int:
             ax,
             out.query.image,
             out.candidate.image,
-            out.query.view.features,
-            out.candidate.view.features,
             res,
         )
         args.plot.parent.mkdir(parents=True, exist_ok=True)

@@ -13,10 +13,10 @@ from matplotlib.colors import LinearSegmentedColormap, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Polygon
 
-from ..types import Features
+from ..errors import InputError
 from .result import Verification
 
-__all__ = ["CONFIDENCE_CMAP", "plot_verification", "side_by_side"]
+__all__ = ["CONFIDENCE_CMAP", "draw_verification", "plot_verification", "side_by_side"]
 
 #: weak (blue) to strong (green), as in the paper's match figures
 CONFIDENCE_CMAP = LinearSegmentedColormap.from_list("weak_strong", ["#1a2cff", "#00a0e0", "#00d000"])
@@ -49,8 +49,6 @@ def plot_verification(
     ax: Axes,
     image_query: np.ndarray,
     image_candidate: np.ndarray,
-    query: Features,
-    candidate: Features,
     result: Verification,
     *,
     max_matches: int = 150,
@@ -67,13 +65,13 @@ def plot_verification(
         ax: the axes to draw in (nothing is shown or saved here).
         image_query: the query image the keypoints refer to (grey or BGR).
         image_candidate: the candidate image.
-        query: the query features.
-        candidate: the candidate features.
-        result: the verification of the pair.
+        result: the verification of the pair (as a Verifier returns it: with the matches' pixels).
         max_matches: draw at most this many matches (the best ranked).
         colorbar: add a confidence colour bar to the axes' figure.
         title: title; default states the decision.
     """
+    if result.pixels_query is None or result.pixels_candidate is None:
+        raise InputError("plot_verification: the result carries no match pixels (make it with a Verifier)")
     canvas, offset = side_by_side(image_query, image_candidate)
     ax.imshow(canvas)
     ax.set_axis_off()
@@ -85,8 +83,8 @@ def plot_verification(
     hi = float(np.ceil(conf_all.max() * 20) / 20) if k else 1.0
     norm = Normalize(lo, max(hi, lo + 0.05))
     if k:
-        pq = query.keypoints[m.query[:k]].astype(np.float64)
-        pc = candidate.keypoints[m.candidate[:k]].astype(np.float64)
+        pq = result.pixels_query[:k].astype(np.float64)
+        pc = result.pixels_candidate[:k].astype(np.float64)
         pc[:, 0] += offset
         conf = m.confidence[:k]
         colours = CONFIDENCE_CMAP(norm(conf))
@@ -104,8 +102,8 @@ def plot_verification(
         idx = np.asarray(tri.matches)
         colour = "#ffd600" if tri.agree else "#ff1744"
         style = "-" if tri.agree else "--"
-        for feats, ids, dx in ((query, m.query[idx], 0.0), (candidate, m.candidate[idx], float(offset))):
-            pts = feats.keypoints[ids].astype(np.float64) + [dx, 0.0]
+        for pixels, dx in ((result.pixels_query, 0.0), (result.pixels_candidate, float(offset))):
+            pts = pixels[idx].astype(np.float64) + [dx, 0.0]
             ax.add_patch(
                 Polygon(
                     pts, closed=True, fill=False, edgecolor=colour, linestyle=style, linewidth=2.2, zorder=5
@@ -133,3 +131,31 @@ def plot_verification(
         cb = ax.figure.colorbar(sm, ax=ax, fraction=0.025, pad=0.01)
         cb.set_label("match confidence (1 - Hamming/128): blue weak, green strong", fontsize=7)
         cb.ax.tick_params(labelsize=7)
+
+
+def draw_verification(
+    image_query: np.ndarray, image_candidate: np.ndarray, result: Verification, *, dpi: int = 100
+) -> np.ndarray:
+    """Render :func:`plot_verification` off-screen to an image.
+
+    Args:
+        image_query: the query image the keypoints refer to (grey or BGR).
+        image_candidate: the candidate image.
+        result: the verification of the pair.
+        dpi: resolution of the rendering.
+
+    Returns:
+        (H, W, 3) uint8 BGR picture (ready for ``cv2.imwrite``).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    h = max(image_query.shape[0], image_candidate.shape[0])
+    w = image_query.shape[1] + image_candidate.shape[1]
+    fig = Figure(figsize=(w / dpi + 1.5, h / dpi + 0.6), dpi=dpi)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.01, 0.02, 0.88, 0.9))
+    plot_verification(ax, image_query, image_candidate, result)
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    return np.ascontiguousarray(rgba[:, :, 2::-1])

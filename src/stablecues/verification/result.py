@@ -63,6 +63,9 @@ class Verification:
         fundamental: (3, 3) fundamental matrix (``x_q^T F x_c = 0``), fundamental verifier only.
         timings: milliseconds per stage (``matching``, ``triangles``, ``pnp``, ``fundamental``,
             ``total``).
+        pixels_query: (M, 2) float32 keypoint pixels of the matches in the query image, so that
+            the result can be drawn without the features.
+        pixels_candidate: (M, 2) float32 keypoint pixels of the matches in the candidate image.
     """
 
     accepted: bool
@@ -79,6 +82,8 @@ class Verification:
     rmse_px: float = float("nan")
     fundamental: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    pixels_query: np.ndarray | None = None
+    pixels_candidate: np.ndarray | None = None
 
     @property
     def n_matches(self) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -152,6 +153,21 @@ class Verifier:
         elif method is Method.PNP and (candidate.points is None or self.camera is None):
             fallback = True
             method = Method.FUNDAMENTAL
+        return self._with_pixels(
+            self._decide(query, candidate, matches, method, fallback, t0, timings), query, candidate
+        )
+
+    def _decide(
+        self,
+        query: View,
+        candidate: View,
+        matches: Matches,
+        method: Method,
+        fallback: bool,
+        t0: float,
+        timings: dict[str, float],
+    ) -> Verification:
+        cfg = self.config
         if fallback and not cfg.fallback:
             return self._finish(
                 False,
@@ -196,6 +212,15 @@ class Verifier:
             inliers=inliers,
             timings=timings,
             **extra,  # type: ignore[arg-type]
+        )
+
+    @staticmethod
+    def _with_pixels(result: Verification, query: View, candidate: View) -> Verification:
+        m = result.matches
+        return dataclasses.replace(
+            result,
+            pixels_query=query.features.keypoints[m.query],
+            pixels_candidate=candidate.features.keypoints[m.candidate],
         )
 
     def _fundamental(
