@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     view = args.gt_view or run_.meta.get("gt_view") or "all"
     if view not in ("all", "left", "right", "pair"):
         raise ConfigError(f"{run_.path}: meta.json gt_view {view!r} is not all, left, right or pair")
-    n_frames = run_.meta.get("dataset_frames")
+    n_frames = run_.meta.get("dataset_frames", run_.meta.get("frames"))
     gt = fit_view(gt, cast(View, view), int(n_frames) if n_frames is not None else None)
     exclude = args.exclude if args.exclude is not None else int(run_.meta.get("exclude", 0) or 0)
     _, doc = evaluate_run(

@@ -3,15 +3,16 @@
 Files of a run directory::
 
     config.json      the detector configuration used (free-form JSON object)
-    meta.json        {"dataset", "format", "preset", "ground_truth" (path or null), ...,
-                      "versions": {...}, "created", "finished", "frames", "complete"}
+    meta.json        {"dataset", "format", "preset", "ground_truth" (path or null), "gt_view",
+                      "dataset_frames", "exclude", ..., "versions": {...}, "created",
+                      "finished", "frames_written", "complete"}
     decisions.csv    one row per processed frame, header
                      frame,timestamp,status,candidate,score,raw_score,accepted,t_<stage>_ms...
                      (candidate -1 and score nan when there is none; accepted 0/1;
                      stage times in milliseconds, nan when the stage did not run)
     extra.jsonl      optional, one JSON object per line {"frame": i, ...} with per-frame extras
     similarity.npy   optional (N, N) float32: score of query i against earlier frame j,
-                     0 where not computed
+                     0 where not computed (may cover only a prefix of an interrupted run)
     timings.json     {stage: {mean, std, min, max, count}} in ms, written on close
     matches/*.png    optional match pictures of sample loops
     eval_<protocol>.json   written by ``stablecues eval``
@@ -348,7 +349,7 @@ class RunWriter:
         self._closed = True
         arrays = {k: np.asarray(v, dtype=np.float64) for k, v in self._times.items()}
         write_json(self.path / TIMINGS, timing_table(arrays))
-        self.meta.update({"finished": _now(), "frames": self._rows, "complete": True})
+        self.meta.update({"finished": _now(), "frames_written": self._rows, "complete": True})
         write_json(self.path / META, self.meta)
 
     def __enter__(self) -> RunWriter:
@@ -578,5 +579,8 @@ def _load_similarity(path: Path, frames: np.ndarray) -> np.ndarray | None:
             f"{path}: expected a square float N x N similarity matrix, found {m.shape} {m.dtype}"
         )
     if frames.size and m.shape[0] <= frames[-1]:
-        raise DatasetError(f"{path}: {m.shape[0]} x {m.shape[0]} matrix is too small for frame {frames[-1]}")
+        # a run killed between two similarity checkpoints: the matrix covers a prefix
+        logger.warning(
+            "%s: %d x %d covers frames up to %d only", path, m.shape[0], m.shape[0], m.shape[0] - 1
+        )
     return np.asarray(m)
