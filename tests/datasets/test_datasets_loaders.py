@@ -149,6 +149,9 @@ def test_kitti(tmp_path: Path) -> None:
     assert f.calibration_path == seq / "calib.txt"
     colour = open_dataset(seq, cameras="colour")
     assert colour[0].image.shape == (6, 8, 3) and colour[0].right is None
+    grey_cal, colour_cal = ds.calibration, colour.calibration
+    if grey_cal is not None and colour_cal is not None:  # the geometry module reads calib.txt
+        assert grey_cal.bf == pytest.approx(fx * base) and colour_cal.bf == pytest.approx(fx * (base + 0.06))
     assert colour[1].pose is not None
     np.testing.assert_allclose(colour[1].pose[:3, 3], [1 - 0.06, 0, 2])  # cam2 is 6 cm left of cam0
     (seq / "times.txt").write_text("0.0\n0.1\n")

@@ -119,6 +119,9 @@ class SequenceDataset:
         grey: convert images to (H, W) grey on reading (colour kept as BGR otherwise).
         gt_options: keyword arguments of :func:`~stablecues.evaluation.groundtruth.load_ground_truth`
             that reading ``gt_path`` for this dataset needs (the reference count of a two-pass set).
+        calibration_loader: reads ``calibration_path`` when the generic
+            ``stablecues.geometry.load_calibration`` would not pick the right cameras (KITTI's
+            colour pair); None uses the generic one.
     """
 
     root: Path
@@ -130,6 +133,7 @@ class SequenceDataset:
     gt_path: Path | None = None
     grey: bool = False
     gt_options: dict[str, Any] = field(default_factory=dict)
+    calibration_loader: Callable[[Path], Any] | None = field(default=None, repr=False)
     _calibration: Any = field(default=None, init=False, repr=False)
     _calibration_tried: bool = field(default=False, init=False, repr=False)
 
@@ -214,7 +218,10 @@ class SequenceDataset:
         """The loaded calibration (once, on first use), or None; see :attr:`Frame.calibration`."""
         if not self._calibration_tried:
             self._calibration_tried = True
-            self._calibration = load_calibration_lazily(self.calibration_path)
+            if self.calibration_loader is not None and self.calibration_path is not None:
+                self._calibration = self.calibration_loader(self.calibration_path)
+            else:
+                self._calibration = load_calibration_lazily(self.calibration_path)
         return self._calibration
 
     def describe(self) -> dict[str, Any]:

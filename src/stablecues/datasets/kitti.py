@@ -16,7 +16,7 @@ the (pure translation) offset that ``calib.txt`` gives between the two.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -143,6 +143,14 @@ def open_kitti(
             rec.pose = pose
 
     loops = root / "loops.npy"
+    loader = None
+    if cameras == "colour":
+
+        def loader(path: Path) -> Any:
+            from ..geometry.calibration import load_kitti
+
+            return load_kitti(path, pair="colour")
+
     return SequenceDataset(
         root=root,
         records=records,
@@ -150,4 +158,5 @@ def open_kitti(
         calibration_path=calib_file if calib is not None else None,
         gt_path=loops if loops.is_file() else None,
         grey=grey,
+        calibration_loader=loader,
     )
