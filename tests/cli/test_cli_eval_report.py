@@ -162,3 +162,20 @@ def test_report_renders_in_headless_chromium(runs: tuple[Path, Path, Path], tmp_
     assert image is not None and image.shape == (2000, 1200)
     # non-blank: a white page with dark text, plots and tables
     assert image.std() > 20 and (image < 100).mean() > 0.01 and (image > 240).mean() > 0.3
+
+
+def test_eval_interleaved_release_view_from_meta(tmp_path: Path) -> None:
+    full = np.zeros((8, 8), bool)
+    full[6, 0] = full[7, 1] = True  # left 3 - left 0, right 3 - right 0
+    save_ground_truth(tmp_path / "gt.npy", full)
+    meta = {"ground_truth": str(tmp_path / "gt.npy"), "gt_view": "left", "dataset_frames": 4, "preset": "x"}
+    with RunWriter(tmp_path / "run", {}, meta) as w:
+        for i in range(4):
+            w.add(
+                i, float(i), "accepted" if i == 3 else "no_results", 0 if i == 3 else -1, 0.9, 0.9, i == 3, {}
+            )
+    assert main(["eval", str(tmp_path / "run")]) == 0
+    doc = json.loads((tmp_path / "run" / "eval_exact.json").read_text())
+    assert doc["gt_view"] == "left" and doc["gt_frames"] == 4 and (doc["tp"], doc["fp"]) == (1, 0)
+    assert main(["report", str(tmp_path / "run"), "--out", str(tmp_path / "r.html")]) == 0
+    assert "detections not overlaid" not in (tmp_path / "r.html").read_text()

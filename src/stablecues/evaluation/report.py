@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import StableCuesError
 from .evaluate import evaluate_run
-from .groundtruth import GroundTruth, load_ground_truth
+from .groundtruth import GroundTruth, fit_view, load_ground_truth
 from .plots import figure_png, new_figure, plot_matrix, plot_pr_curves, plot_status_counts
 from .runs import Run
 
@@ -94,12 +94,13 @@ def _load_gt(
     if key not in cache:
         try:
             notes = doc.get("gt_notes") or {}
-            cache[key] = load_ground_truth(
+            raw = load_ground_truth(
                 path,
                 variable=doc.get("gt_variable") if str(path).endswith((".mat", ".npz")) else None,
-                view=doc.get("gt_view", "all"),
                 n_ref=notes.get("n_ref"),
             )
+            frames = doc.get("gt_frames")
+            cache[key] = fit_view(raw, doc.get("gt_view", "all"), int(frames) if frames is not None else None)
         except StableCuesError as exc:
             return None, f"ground truth not shown: {exc}"
     gt = cache[key]
