@@ -242,9 +242,9 @@ class NavSolution:
         if len(self) > 0:
             inside = (times >= self.t[0]) & (times <= self.t[-1])
             if len(self) > 1:
-                k = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self) - 2)
+                seg = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self) - 2)
                 exact = np.isin(times, self.t)
-                inside &= (self.t[k + 1] - self.t[k] <= max_gap) | exact
+                inside &= (self.t[seg + 1] - self.t[seg] <= max_gap) | exact
             ti = times[inside]
             for k in range(3):
                 pos[inside, k] = np.interp(ti, self.t, self.position[:, k])

@@ -1,0 +1,254 @@
+"""``stablecues mav``: drone flight logs -- summary, plots, camera poses, loop ground truth.
+
+stablecues mav info LOG
+stablecues mav plot LOG --out DIR
+stablecues mav poses LOG [--frames DIR --times CSV] --out poses.txt [--dataset DIR]
+stablecues mav gt poses.txt --out gt.png          (also writes gt.npy)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from ..errors import InputError
+
+if TYPE_CHECKING:
+    from ..mav import FlightLog
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "mav",
+        help="drone flight logs: plots, EKF poses per camera frame, loop ground truth",
+        description="Read ArduPilot dataflash (.bin/.log), PX4 ULog (.ulg) or CSV GNSS tracks; fuse "
+        "IMU, GNSS, barometer and compass into poses; pair them with camera frames; build loop "
+        "ground truth; draw the flight figures.",
+    )
+    sub = p.add_subparsers(dest="mav_command", metavar="ACTION")
+
+    info = sub.add_parser("info", help="summary of a flight log (duration, sensors, flight modes)")
+    info.add_argument("log", type=Path, metavar="LOG")
+    info.add_argument(
+        "--ekf", action="store_true", help="also run the EKF and compare it with the onboard one"
+    )
+
+    plot = sub.add_parser("plot", help="trajectory, altitude with flight modes, lat/lon/alt, roll/pitch/yaw")
+    plot.add_argument("log", type=Path, metavar="LOG")
+    plot.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the PNG files")
+    plot.add_argument("--no-ekf", action="store_true", help="do not draw this package's EKF solution")
+    plot.add_argument("--dpi", type=int, default=150)
+
+    poses = sub.add_parser("poses", help="a pose per camera frame (or at a fixed rate) as a TUM file")
+    poses.add_argument("log", type=Path, metavar="LOG")
+    poses.add_argument("--out", type=Path, required=True, metavar="POSES_TXT", help="TUM poses file to write")
+    poses.add_argument("--frames", type=Path, metavar="DIR", help="image folder or recording folder")
+    poses.add_argument("--times", type=Path, metavar="CSV", help="CSV of capture times (and image names)")
+    poses.add_argument("--time-column", metavar="NAME", help="time column of the CSV (default: auto)")
+    poses.add_argument(
+        "--clock",
+        choices=("auto", "utc", "boot", "log"),
+        default="auto",
+        help="clock of the frame times: UNIX (mapped by GNSS time), autopilot boot clock, "
+        "seconds since log start, or auto (UNIX when they look like it, else boot)",
+    )
+    poses.add_argument(
+        "--offset",
+        default="0",
+        metavar="S|estimate",
+        help="seconds added to the frame times after the clock mapping, or 'estimate' "
+        "(fit from the frames' geotags against the GNSS track)",
+    )
+    poses.add_argument(
+        "--source",
+        choices=("auto", "ekf", "onboard", "gnss"),
+        default="auto",
+        help="pose source: this package's EKF, the autopilot's EKF, or the GNSS track "
+        "(auto: ekf when the log has IMU and GNSS)",
+    )
+    poses.add_argument(
+        "--mount",
+        choices=("body", "forward", "nadir"),
+        default="body",
+        help="camera mounting: body frame (FRD), forward- or down-looking optical frame",
+    )
+    poses.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="pose rate without --frames")
+    poses.add_argument(
+        "--dataset",
+        type=Path,
+        metavar="DIR",
+        help="also write the image-folder dataset (images, times.txt, poses.txt, loops.npy)",
+    )
+    _add_gt_options(poses)
+
+    gt = sub.add_parser("gt", help="loop ground truth (.npy) and its picture from a TUM poses file")
+    gt.add_argument("poses", type=Path, metavar="POSES_TXT")
+    gt.add_argument("--out", type=Path, required=True, metavar="PNG", help="picture to write")
+    gt.add_argument("--npy", type=Path, metavar="NPY", help="ground-truth matrix (default: --out with .npy)")
+    _add_gt_options(gt)
+    return p
+
+
+def _add_gt_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--max-distance", type=float, default=10.0, metavar="M", help="loop distance (default 10 m)"
+    )
+    p.add_argument("--max-angle", type=float, default=None, metavar="DEG", help="largest heading difference")
+    p.add_argument("--min-gap-s", type=float, default=20.0, metavar="S", help="smallest time between a pair")
+    p.add_argument("--min-gap-frames", type=int, default=0, metavar="N", help="smallest index difference")
+
+
+def _read(path: Path, *, quiet: bool = False) -> FlightLog:
+    """read_log, printing its warnings as one line each (the summary repeats them when quiet)."""
+    from ..mav import read_log
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        log = read_log(path)
+    if not quiet:
+        for w in caught:
+            print(f"warning: {w.message}", file=sys.stderr)
+    return log
+
+
+def run(args: argparse.Namespace) -> int:
+    action = getattr(args, "mav_command", None)
+    if action == "info":
+        return _info(args)
+    if action == "plot":
+        return _plot(args)
+    if action == "poses":
+        return _poses(args)
+    if action == "gt":
+        return _gt(args)
+    print("stablecues mav: expected an action: info, plot, poses or gt", file=sys.stderr)
+    return 2
+
+
+def _info(args: argparse.Namespace) -> int:
+    from ..mav import compare_solutions, run_ekf
+
+    log = _read(args.log, quiet=True)
+    print(log.summary())
+    if args.ekf:
+        solution, report = run_ekf(log)
+        print(
+            f"  EKF: {len(solution)} states from {report.start_time:.1f} s, "
+            f"GNSS lag {report.gnss_lag_s:.3f} s, IMU noise {report.accel_noise:.2f} m/s^2 / "
+            f"{report.gyro_noise:.3f} rad/s, resets {report.resets}"
+        )
+        if log.onboard is not None:
+            c = compare_solutions(solution, log.onboard)
+            print(
+                f"  EKF vs {c.reference}: {c.h_rmse_m:.3f} m horizontal, {c.v_rmse_m:.3f} m vertical RMS "
+                f"(constant offset removed), yaw {c.yaw_rmse_deg:.1f} deg RMS, n={c.n}"
+            )
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from ..mav import run_ekf
+    from ..mav.plots import save_flight_figures
+
+    log = _read(args.log)
+    solution = None
+    if not args.no_ekf and len(log.imu) >= 2 and np.any(log.gnss.fix >= 3):
+        solution, _ = run_ekf(log)
+    paths = save_flight_figures(log, args.out, solution=solution, dpi=args.dpi)
+    for path in paths.values():
+        print(path)
+    return 0
+
+
+def _offset(text: str) -> float | Literal["estimate"]:
+    if text == "estimate":
+        return "estimate"
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"--offset: expected seconds or 'estimate', got {text!r}") from None
+
+
+def _poses(args: argparse.Namespace) -> int:
+    from ..mav import geo, sync
+
+    log = _read(args.log)
+    solution = sync.log_solution(log, args.source)
+    if args.frames is None and args.times is None:
+        if args.dataset is not None:
+            raise InputError("--dataset needs camera frames (--frames and/or --times)")
+        every = sync.resample_solution(solution, args.rate)
+        quat = every.quaternion
+        if not solution.has_attitude:
+            # no attitude in the source: a level, north-facing body (as poses_for_frames does)
+            level_north = geo.matrix_to_quat(geo.R_ENU_NED)
+            quat = np.where(np.isfinite(every.position).all(axis=1)[:, None], level_north, np.nan)
+        n = sync.write_tum(
+            args.out,
+            every.t,
+            every.position,
+            quat,
+            comments=(
+                "stablecues mav poses: t (s since log start) x y z qx qy qz qw, body(FRD)-to-world",
+                f"world: ENU metres about lat={solution.origin[0]:.8f} lon={solution.origin[1]:.8f} "
+                f"alt={solution.origin[2]:.3f} m; source: {solution.name}",
+            ),
+        )
+        print(f"{args.out}: {n} poses at {args.rate:g} Hz from {solution.name}")
+        return 0
+    frames = sync.read_frames(args.frames, args.times, time_column=args.time_column)
+    poses = sync.poses_for_frames(
+        frames, log, solution, clock=args.clock, offset=_offset(args.offset), mount=args.mount
+    )
+    n = sync.write_tum(
+        args.out, poses.frame_times, poses.positions, poses.quaternions, comments=sync.tum_comments(poses)
+    )
+    print(
+        f"{args.out}: {n} of {len(frames)} frames posed from {poses.source} "
+        f"(clock offset {poses.offset:.3f} s)"
+    )
+    if args.dataset is not None:
+        keep = poses.valid
+        loops = sync.loops_from_trajectory(
+            poses.positions[keep],
+            max_distance=args.max_distance,
+            quaternions=poses.quaternions[keep],
+            max_angle_deg=args.max_angle,
+            times=poses.frame_times[keep],
+            min_gap_s=args.min_gap_s,
+            min_gap_frames=args.min_gap_frames,
+        )
+        out = sync.write_image_folder(args.dataset, frames, poses, loops=loops)
+        print(f"{out}: image-folder dataset, {int(keep.sum())} frames, {int(loops.sum())} loop pairs")
+    return 0
+
+
+def _gt(args: argparse.Namespace) -> int:
+    from ..mav import sync
+    from ..mav.plots import loop_figure
+
+    times, positions, quats = sync.read_tum(args.poses)
+    gt = sync.loops_from_trajectory(
+        positions,
+        max_distance=args.max_distance,
+        quaternions=quats,
+        max_angle_deg=args.max_angle,
+        times=times,
+        min_gap_s=args.min_gap_s,
+        min_gap_frames=args.min_gap_frames,
+    )
+    npy = args.npy or args.out.with_suffix(".npy")
+    npy.parent.mkdir(parents=True, exist_ok=True)
+    np.save(npy, gt)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    loop_figure(positions, gt).savefig(args.out, dpi=150)
+    print(
+        f"{npy}: {gt.shape[0]} frames, {int(gt.sum())} loop pairs ({int(gt.any(axis=1).sum())} query frames)"
+    )
+    print(args.out)
+    return 0
