@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from ..errors import CalibrationError, InputError
-from .camera import Calibration, PinholeCamera, Rectification
+from .camera import UNDISTORT_CRITERIA, Calibration, PinholeCamera, Rectification
 
 __all__ = ["StereoRectifier", "rectification_of"]
 
@@ -126,7 +126,12 @@ class StereoRectifier:
             return np.zeros((0, 2))
         rect = self.rectification
         out = cv2.undistortPoints(
-            pixels.reshape(-1, 1, 2), self.raw.left.K, self.raw.left.dist, R=rect.R1, P=rect.P1
+            pixels.reshape(-1, 1, 2),
+            self.raw.left.K,
+            self.raw.left.dist,
+            R=rect.R1,
+            P=rect.P1,
+            criteria=UNDISTORT_CRITERIA,
         )
         return out.reshape(-1, 2).astype(np.float64)
 

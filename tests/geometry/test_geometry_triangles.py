@@ -1,0 +1,108 @@
+"""The triangle check: rigid motions pass, non-rigid changes fail, degenerate triangles are skipped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stablecues.errors import ConfigError, InputError
+from stablecues.geometry import NoiseModel, Points3D, TriangleConfig, check_triangles, side_sigma
+from stablecues.geometry.pose import _so3_exp
+
+NOISE = NoiseModel.stereo(450.0, 0.11)  # EuRoC-like: sigma_z = z^2 * 0.3 / 49.5
+
+
+def _scene(n: int = 60, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.c_[rng.uniform(-1.5, 1.5, (n, 2)), rng.uniform(1.5, 4.0, n)]
+
+
+def _rigid(x: np.ndarray, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    r = _so3_exp(rng.normal(size=3) * 0.2)
+    t = rng.normal(size=3) * 0.3
+    return x @ r.T + t
+
+
+def _noisy(x: np.ndarray, seed: int) -> Points3D:
+    """Points perturbed as the noise model says (depth along the ray, lateral)."""
+    rng = np.random.default_rng(seed)
+    clean = NOISE.points(x)
+    ray = x / x[:, 2:3]
+    noisy = x + ray * (clean.sigma_depth[:, None] * rng.normal(size=(len(x), 1)))
+    noisy[:, :2] += clean.sigma_lateral[:, None] * rng.normal(size=(len(x), 2))
+    return NOISE.points(noisy)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_rigid_motion_is_accepted(seed: int) -> None:
+    cand = _scene(seed=seed)
+    query = _rigid(cand, seed + 100)
+    res = check_triangles(_noisy(query, seed + 1), _noisy(cand, seed + 2))
+    assert res.n_checked == 10
+    assert res.n_agree >= 9  # a correct side fails the 3-sigma gate with p = 0.27 %
+
+
+def test_non_rigid_change_is_rejected() -> None:
+    cand = _scene(seed=3)
+    query = _rigid(cand, 7)
+    rng = np.random.default_rng(5)
+    bent = query + rng.normal(size=query.shape) * 0.4  # every point moved by ~0.4 m
+    res = check_triangles(NOISE.points(bent), NOISE.points(cand))
+    assert res.n_agree <= 1
+    # a wrong correspondence (shuffled matches) breaks triangles as well
+    perm = rng.permutation(len(query))
+    assert check_triangles(NOISE.points(query[perm]), NOISE.points(cand)).n_agree <= 1
+
+
+def test_relative_tolerance_by_hand() -> None:
+    tri = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
+    scaled = tri * np.array([1.015, 1.015, 1.0])  # x and y sides 1.5 % longer
+    cfg = TriangleConfig(n_triangles=1, tolerance="relative", relative_tolerance=0.02, min_side_sigma=0.0)
+    pts = lambda x: Points3D(x.astype(np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32))  # noqa: E731
+    res = check_triangles(pts(scaled), pts(tri), cfg)
+    assert res.n_agree == 1
+    np.testing.assert_allclose(res.triangles[0].sides_candidate, [1.0, np.sqrt(2), 1.0], rtol=1e-6)
+    np.testing.assert_allclose(res.triangles[0].allowed[0], 0.02 * (1.015 + 1.0) / 2, rtol=1e-6)
+    worse = tri * np.array([1.03, 1.03, 1.0])
+    assert check_triangles(pts(worse), pts(tri), cfg).n_agree == 0
+
+
+def test_degenerate_triangles_are_skipped_and_replaced() -> None:
+    p = np.array(
+        [
+            [0.0, 0.0, 2.0],
+            [1.0, 0.0, 2.0],
+            [2.0, 0.001, 2.0],  # collinear with the first two
+            [1.0, 0.0, 2.0],  # the same point as the second
+            [np.nan, np.nan, np.nan],  # no depth
+            [0.2, 1.0, 2.5],
+        ]
+    )
+    pts = NOISE.points(p)
+    res = check_triangles(pts, pts, TriangleConfig(n_triangles=1))
+    assert res.n_usable == 5
+    assert res.triangles[0].matches == (0, 1, 5)
+    assert dict(res.skipped) == {2: "collinear", 3: "too_close"}
+    assert res.n_agree == 1
+
+
+def test_empty_and_mismatched_inputs() -> None:
+    res = check_triangles(Points3D.empty(0), Points3D.empty(0))
+    assert res.n_checked == 0 and res.n_agree == 0 and res.triangles == ()
+    assert check_triangles(Points3D.empty(5), Points3D.empty(5)).n_usable == 0
+    with pytest.raises(InputError):
+        check_triangles(Points3D.empty(2), Points3D.empty(3))
+    with pytest.raises(ConfigError):
+        TriangleConfig(tolerance="fixed")
+
+
+def test_side_sigma_by_hand() -> None:
+    # two points at the same depth on the x axis: the side is lateral, its sigma the lateral ones
+    x = np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0]])
+    sd = np.array([0.1, 0.1])
+    sl = np.array([0.01, 0.02])
+    s = side_sigma(x, sd, sl, np.array([0]), np.array([1]))
+    # u = (-1, 0, 0); r0 = (-0.25, 0, 1): u.r0 = 0.25; r1 = (0.25, 0, 1): u.r1 = -0.25
+    expected = np.sqrt(0.1**2 * 0.25**2 * 2 + 0.01**2 + 0.02**2)
+    assert s[0] == pytest.approx(expected)
