@@ -1,0 +1,334 @@
+"""A z-buffered renderer of textured quads: one homography warp per visible quad.
+
+For a quad with texel-to-world map ``X = origin + tx * u + ty * v`` and a camera with
+camera-to-world rotation ``R`` and centre ``C``, the texel-to-pixel map is the homography
+``H = K [R^T u | R^T v | R^T (origin - C)]``. Each visible quad is clipped against the near plane,
+its screen polygon filled, its texture warped into its screen bounding box with
+``cv2.warpPerspective`` (from the mip level matching its nearest depth), and composited where it
+is nearer than the z-buffer. Depth is exact per pixel: on a plane ``n . X = d`` (camera frame), the
+inverse depth ``1 / z = n . K^-1 (x, y, 1) / d`` is affine in the pixel coordinates.
+
+Pixel coordinates follow OpenCV: integer coordinates are pixel centres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .scene import LANDMARK_CLASSES, SKY, Lighting, QuadSet, TextureBank
+from .town import Decals
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """A pinhole camera without distortion (OpenCV convention)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @staticmethod
+    def from_fov(width: int, height: int, hfov_deg: float) -> Intrinsics:
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return Intrinsics(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class View:
+    """One rendered view.
+
+    Attributes:
+        image: (H, W, 3) uint8 BGR.
+        depth: (H, W) float32 metres along the optical axis, 0 where nothing is (sky).
+        labels: (H, W) uint8 CamVid ids, or None when not asked for.
+        inst: (H, W) int32 static visibility id + 1 per pixel (0: sky or a moving object), or None.
+        levels: (M,) int8 mip level used per candidate quad (-1: not drawn), to reuse in a stereo pair.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray | None
+    inst: np.ndarray | None
+    levels: np.ndarray
+
+
+def cull(R: np.ndarray, C: np.ndarray, centre: np.ndarray, radius: np.ndarray, cam: Intrinsics, far: float, margin: float = 0.0) -> np.ndarray:
+    """Indices of the bounding spheres (centre (M, 3), radius (M,)) that may be in view."""
+    d = centre - C
+    cz = d @ R[:, 2]
+    cx = d @ R[:, 0]
+    cy = d @ R[:, 1]
+    r = radius + margin
+    tx = (cam.width / 2.0 + 1.0) / cam.fx
+    ty = (cam.height / 2.0 + 1.0) / cam.fy
+    sx = math.sqrt(1.0 + tx * tx)
+    sy = math.sqrt(1.0 + ty * ty)
+    dist = np.sqrt((d * d).sum(axis=1))
+    keep = (cz > -r) & (dist - r < far) & (np.abs(cx) <= cz * tx + r * sx) & (np.abs(cy) <= cz * ty + r * sy)
+    return np.nonzero(keep)[0]
+
+
+def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
+    """Sutherland-Hodgman clip of a camera-frame polygon (k, 3) to z >= near."""
+    out = []
+    k = len(poly)
+    for i in range(k):
+        a, b = poly[i], poly[(i + 1) % k]
+        ina, inb = a[2] >= near, b[2] >= near
+        if ina:
+            out.append(a)
+        if ina != inb:
+            t = (near - a[2]) / (b[2] - a[2])
+            out.append(a + t * (b - a))
+    return np.array(out) if out else np.zeros((0, 3))
+
+
+class Renderer:
+    """Renders quads seen by a camera into colour, depth, labels and a visibility-id image.
+
+    Args:
+        cam: intrinsics (also fixes the image size).
+        bank: the textures the quads refer to.
+        near, far: clipping distances in metres.
+    """
+
+    def __init__(self, cam: Intrinsics, bank: TextureBank, near: float = 0.1, far: float = 250.0) -> None:
+        self.cam = cam
+        self.bank = bank
+        self.near = near
+        self.far = far
+        W, H = cam.width, cam.height
+        self.K = cam.K
+        self.K_inv = np.linalg.inv(self.K)
+        self.gx = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
+        self.gy = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
+        # sky: azimuth offset per column and elevation per pixel of a level camera
+        xn = (np.arange(W) - cam.cx) / cam.fx
+        yn = (np.arange(H) - cam.cy) / cam.fy
+        self._sky_az = -np.arctan(xn)  # radians, added to the heading
+        self._sky_el = np.arctan2(-yn[:, None], np.sqrt(1.0 + xn[None, :] ** 2))
+        self.sky_el_max = math.radians(40.0)
+
+    # ------------------------------------------------------------------ geometry per quad
+
+    def _prepare(self, q: QuadSet, R: np.ndarray, C: np.ndarray, normals: np.ndarray) -> dict[str, np.ndarray]:
+        oc = (q.origin - C) @ R
+        uc = q.u @ R
+        vc = q.v @ R
+        nc = normals @ R
+        r = q.rect
+        tx = np.stack([r[:, 0], r[:, 2], r[:, 2], r[:, 0]], axis=1)
+        ty = np.stack([r[:, 1], r[:, 1], r[:, 3], r[:, 3]], axis=1)
+        pc = oc[:, None, :] + tx[..., None] * uc[:, None, :] + ty[..., None] * vc[:, None, :]
+        d = (nc * oc).sum(axis=1)  # plane n.X = d in the camera frame
+        with np.errstate(divide="ignore", invalid="ignore"):
+            abc = (nc @ self.K_inv) / d[:, None]  # 1/z = abc . (x, y, 1)
+        Hm = np.einsum("ij,mjk->mik", self.K, np.stack([uc, vc, oc], axis=2))
+        return {"pc": pc, "d": d, "abc": abc, "H": Hm}
+
+    def _screen_all(self, pc: np.ndarray, cand: np.ndarray) -> dict[str, np.ndarray | dict[int, np.ndarray]]:
+        """Screen polygons, clamped bounding boxes and nearest depths of camera-frame quads (M, 4, 3).
+
+        Quads crossing the near plane are clipped (Sutherland-Hodgman), one by one; the others
+        are projected together. Returns ``ok`` (M,) bool (something on screen), ``box`` (M, 4)
+        int (x0, y0, x1, y1), ``zmin`` (M,), ``poly`` (M, 4, 2) projected corners, and
+        ``clipped`` {index: (k, 2) polygon} for the clipped ones.
+        """
+        cam = self.cam
+        z = pc[:, :, 2]
+        zmin = z.min(axis=1)
+        zmax = z.max(axis=1)
+        ok = cand & (zmax >= self.near)
+        straddle = np.nonzero(ok & (zmin < self.near))[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            poly = np.stack([cam.fx * pc[:, :, 0] / z + cam.cx, cam.fy * pc[:, :, 1] / z + cam.cy], axis=2)
+        lo = poly.min(axis=1)
+        hi = poly.max(axis=1)
+        clipped: dict[int, np.ndarray] = {}
+        for k in straddle.tolist():
+            cp = _clip_near(pc[k], self.near)
+            if len(cp) < 3:
+                ok[k] = False
+                continue
+            pp = np.stack([cam.fx * cp[:, 0] / cp[:, 2] + cam.cx, cam.fy * cp[:, 1] / cp[:, 2] + cam.cy], axis=1)
+            clipped[k] = pp
+            lo[k] = pp.min(axis=0)
+            hi[k] = pp.max(axis=0)
+            zmin[k] = cp[:, 2].min()
+        with np.errstate(invalid="ignore"):
+            box = np.empty((len(pc), 4), np.int64)
+            box[:, 0] = np.clip(np.floor(np.nan_to_num(lo[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.width)
+            box[:, 1] = np.clip(np.floor(np.nan_to_num(lo[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.height)
+            box[:, 2] = np.clip(np.ceil(np.nan_to_num(hi[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.width)
+            box[:, 3] = np.clip(np.ceil(np.nan_to_num(hi[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.height)
+        ok &= (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+        return {"ok": ok, "box": box, "zmin": zmin, "poly": poly, "clipped": clipped}
+
+    def _inv_depth(self, abc: np.ndarray, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """Depth (float32) over a box of the plane with inverse-depth coefficients ``abc``."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return 1.0 / (np.float32(abc[0]) * self.gx[y0:y1, x0:x1] + (np.float32(abc[1]) * self.gy[y0:y1, x0:x1] + np.float32(abc[2])))
+
+    # ------------------------------------------------------------------ main entry
+
+    def render(
+        self,
+        R: np.ndarray,
+        C: np.ndarray,
+        quads: QuadSet,
+        normals: np.ndarray,
+        light: Lighting,
+        decals: Decals | None = None,
+        *,
+        labels: bool = True,
+        levels: np.ndarray | None = None,
+        noise: float = 0.0,
+        noise_rng: np.random.Generator | None = None,
+    ) -> View:
+        """Render one view.
+
+        Args:
+            R: (3, 3) camera-to-world rotation (x right, y down, z forward).
+            C: (3,) camera centre in the world.
+            quads: candidate quads (already culled roughly).
+            normals: (M, 3) their unit front normals.
+            light: the lap's lighting (shading gains and the sky).
+            decals: cast shadows, or None.
+            labels: also produce the label and visibility-id images.
+            levels: (M,) mip levels to use (from the other view of a stereo pair), -1 = choose.
+            noise: standard deviation of added sensor noise, grey levels (0: none).
+            noise_rng: generator for the noise.
+        """
+        cam = self.cam
+        H, W = cam.height, cam.width
+        img = np.zeros((H, W, 3), np.uint8)
+        zbuf = np.full((H, W), np.inf, np.float32)
+        lab = np.full((H, W), SKY, np.uint8) if labels else None
+        inst = np.zeros((H, W), np.int32) if labels else None
+        m_count = len(quads)
+        lv = np.full(m_count, -1, np.int8) if levels is None else levels.copy()
+        if m_count:
+            g = self._prepare(quads, R, C, normals)
+            facing = g["d"] < 0.0  # camera on the front side of the plane
+            scr = self._screen_all(g["pc"], quads.two_sided | facing)
+            ok, box, zmin, poly, clipped = scr["ok"], scr["box"], scr["zmin"], scr["poly"], scr["clipped"]
+            assert isinstance(clipped, dict) and isinstance(box, np.ndarray) and isinstance(zmin, np.ndarray) and isinstance(poly, np.ndarray) and isinstance(ok, np.ndarray)
+            eff_n = np.where(facing[:, None], normals, -normals)
+            gains = light.gains(eff_n, quads.lit)
+            texel = np.linalg.norm(quads.u, axis=1)
+            with np.errstate(divide="ignore"):
+                auto = np.floor(np.log2(np.maximum(np.maximum(zmin, self.near) / cam.fx / texel, 1e-9)) + 0.3)
+            lv = np.where(lv < 0, np.clip(auto, 0, 6), lv).astype(np.int8)
+            ids = np.where((quads.vis >= 0) & np.isin(quads.label, LANDMARK_CLASSES), quads.vis + 1, 0)
+            order = np.nonzero(ok)[0]
+            order = order[np.argsort(zmin[order], kind="stable")]
+            Hs = g["H"]
+            abc = g["abc"]
+            for qi in order.tolist():
+                x0, y0, x1, y1 = box[qi].tolist()
+                zs = zbuf[y0:y1, x0:x1]
+                zq = float(zmin[qi])
+                if zs.max() < zq:
+                    continue  # hidden behind what is already drawn
+                pyramid = self.bank.levels(int(quads.tex[qi]))
+                level = min(int(lv[qi]), len(pyramid) - 1)
+                lv[qi] = level
+                scale = float(1 << level)
+                Hm = Hs[qi].copy()
+                Hm[:, :2] *= scale
+                Hm[0] -= x0 * Hm[2]
+                Hm[1] -= y0 * Hm[2]
+                bw, bh = x1 - x0, y1 - y0
+                warped = cv2.warpPerspective(pyramid[level], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                mask = np.zeros((bh, bw), np.uint8)
+                pp = clipped.get(qi)
+                pts = np.round(((poly[qi] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32)
+                cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+                z = self._inv_depth(abc[qi], y0, y1, x0, x1)
+                m = mask.view(bool)
+                m &= z < zs
+                if warped.shape[2] == 4:
+                    m &= warped[:, :, 3] > 127
+                gq = gains[qi]
+                col = cv2.multiply(warped, (float(gq[0]), float(gq[1]), float(gq[2]), 1.0))
+                np.copyto(zs, z, where=m)
+                np.copyto(img[y0:y1, x0:x1], col[:, :, :3] if col.shape[2] == 4 else col, where=m[:, :, None])
+                if lab is not None and inst is not None:
+                    np.copyto(lab[y0:y1, x0:x1], quads.label[qi], where=m)
+                    np.copyto(inst[y0:y1, x0:x1], ids[qi], where=m)
+        if decals is not None and len(decals.quads):
+            self._shadows(img, zbuf, R, C, decals)
+        self._sky(img, zbuf, R, light)
+        if noise > 0:
+            rng = noise_rng if noise_rng is not None else np.random.default_rng(0)
+            n = rng.standard_normal((H, W), dtype=np.float32) * np.float32(noise)
+            img = np.clip(img.astype(np.float32) + n[:, :, None], 0, 255).astype(np.uint8)
+        depth = np.where(np.isfinite(zbuf), zbuf, np.float32(0.0)).astype(np.float32)
+        return View(img, depth, lab, inst, lv)
+
+    # ------------------------------------------------------------------ shadows and sky
+
+    def _shadows(self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, C: np.ndarray, decals: Decals) -> None:
+        cam = self.cam
+        H, W = cam.height, cam.width
+        idx = cull(R, C, decals.centre, decals.radius, cam, min(self.far, 120.0))
+        if not len(idx):
+            return
+        sub = decals.quads.subset(idx)
+        g = self._prepare(sub, R, C, decals.normal[idx])
+        scr = self._screen_all(g["pc"], g["d"] < 0.0)  # the camera must be on the lit side
+        ok, box, poly, clipped = scr["ok"], scr["box"], scr["poly"], scr["clipped"]
+        assert isinstance(clipped, dict) and isinstance(box, np.ndarray) and isinstance(poly, np.ndarray) and isinstance(ok, np.ndarray)
+        done = np.zeros((H, W), bool)
+        tol_rel, tol_abs = np.float32(2e-4), np.float32(2e-3)
+        for k in np.nonzero(ok)[0].tolist():
+            x0, y0, x1, y1 = box[k].tolist()
+            bw, bh = x1 - x0, y1 - y0
+            mask = np.zeros((bh, bw), np.uint8)
+            pp = clipped.get(k)
+            cv2.fillConvexPoly(mask, np.round(((poly[k] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+            z = self._inv_depth(g["abc"][k], y0, y1, x0, x1)
+            zs = zbuf[y0:y1, x0:x1]
+            m = mask.view(bool)
+            m &= np.abs(zs - z) <= tol_rel * z + tol_abs
+            m &= ~done[y0:y1, x0:x1]
+            if not m.any():
+                continue
+            if decals.alpha[idx[k]]:
+                tex = self.bank.levels(int(sub.tex[k]))[0]
+                Hm = g["H"][k].copy()
+                Hm[0] -= x0 * Hm[2]
+                Hm[1] -= y0 * Hm[2]
+                alpha = cv2.warpPerspective(np.ascontiguousarray(tex[:, :, 3]), Hm, (bw, bh), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+                m &= alpha > 127
+                if not m.any():
+                    continue
+            gq = decals.gain[idx[k]]
+            sl = img[y0:y1, x0:x1]
+            np.copyto(sl, cv2.multiply(sl, (float(gq[0]), float(gq[1]), float(gq[2]), 0.0)), where=m[:, :, None])
+            done[y0:y1, x0:x1] |= m
+
+    def _sky(self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, light: Lighting) -> None:
+        empty = ~np.isfinite(zbuf)
+        rows = np.nonzero(empty.any(axis=1))[0]
+        if not len(rows):
+            return
+        hs = int(rows.max()) + 1
+        pano = self.bank.levels(light.sky_tex)[0]
+        ph, pw = pano.shape[:2]
+        heading = math.atan2(R[1, 2], R[0, 2])
+        mx = np.mod((heading + self._sky_az) * (pw / (2 * math.pi)), pw).astype(np.float32)
+        my = np.clip(self._sky_el[:hs] / self.sky_el_max * (ph - 1), 0, ph - 1).astype(np.float32)
+        sky = cv2.remap(pano, np.broadcast_to(mx[None, :], (hs, len(mx))).astype(np.float32), my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        np.copyto(img[:hs], sky, where=empty[:hs, :, None])
