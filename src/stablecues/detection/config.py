@@ -63,6 +63,10 @@ class DetectorConfig:
         query: database query, islands and temporal consistency.
         similarity: keep each frame's scores against all earlier entries (for the report's
             similarity matrix).
+        confidence: what ranks accepted loops (the score precision-recall curves sweep):
+            "inliers", the geometric inliers of the verified loop (plus the normalised BoW
+            score, below 1, to break ties), or "bow", the normalised BoW score alone (as
+            DLoopDetector). Without verification it is always the BoW score.
     """
 
     features: OrbConfig = field(default_factory=OrbConfig)
@@ -72,8 +76,11 @@ class DetectorConfig:
     verification: VerificationConfig | None = field(default_factory=VerificationConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     similarity: bool = True
+    confidence: Literal["inliers", "bow"] = "inliers"
 
     def __post_init__(self) -> None:
+        if self.confidence not in ("inliers", "bow"):
+            raise ConfigError(f"confidence: expected 'inliers' or 'bow', got {self.confidence!r}")
         if self.semantic_source not in ("network", "labels"):
             raise ConfigError(
                 f"semantic_source: expected 'network' or 'labels', got {self.semantic_source!r}"

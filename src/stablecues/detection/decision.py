@@ -54,6 +54,7 @@ class LoopDecision:
         candidate_frame: the frame index stored with that entry, -1 if none.
         raw_score: the candidate's BoW score.
         score: the candidate's normalised score (= raw without normalisation).
+        confidence: what ranks this detection against others (see DetectorConfig.confidence).
         nss_factor: score between the frame and the previous one (NaN before there is one).
         island: the best island, or None.
         consistent: consecutive temporally consistent frames including this one.
@@ -71,6 +72,7 @@ class LoopDecision:
     candidate_frame: int = -1
     raw_score: float = 0.0
     score: float = 0.0
+    confidence: float = 0.0
     nss_factor: float = math.nan
     island: Island | None = None
     consistent: int = 0

@@ -250,10 +250,13 @@ class LoopDetector:
             self._store(frame, prep)
         timings["total"] = (time.perf_counter() - prep.t_start) * 1e3
         cand = found.get("candidate", -1)
+        confidence = found.get("score", 0.0)
+        if verification is not None and self.config.confidence == "inliers":
+            confidence = float(verification.n_inliers) + min(confidence, 0.999)
         return LoopDecision(
             frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
             candidate=cand, candidate_frame=self._entry_frames[cand] if cand >= 0 else -1,
-            raw_score=found.get("raw_score", 0.0), score=found.get("score", 0.0),
+            raw_score=found.get("raw_score", 0.0), score=found.get("score", 0.0), confidence=confidence,
             nss_factor=found.get("nss_factor", math.nan), island=found.get("island"),
             consistent=found.get("consistent", 0), verification=verification,
             n_features=prep.n_features, n_kept=len(prep.features), mask_fallback=prep.mask_fallback,

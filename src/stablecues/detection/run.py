@@ -75,6 +75,9 @@ def run_dataset(
             Path(str(db_path) + suffix).unlink(missing_ok=True)
     n = len(dataset) if max_frames is None else min(len(dataset), max_frames)
     run_meta = {"preset": preset_name, "frames": n, "exclude": config.query.exclude_recent,
+                "score_column": "geometric inliers + normalised BoW score"
+                if config.confidence == "inliers" and config.verification is not None
+                else "normalised BoW score",
                 **(meta or {})}
     writer = RunWriter(out, to_dict(config), run_meta, stages=STAGES,
                        mode="resume" if resume else "overwrite")
@@ -120,7 +123,7 @@ def run_dataset(
                 if d.relative_pose is not None:
                     extra["relative_pose"] = d.relative_pose.tolist()
             writer.add(d.frame_index, float(frame.timestamp), d.status.value, d.candidate_frame,
-                       d.score if d.candidate >= 0 else float("nan"),
+                       d.confidence if d.candidate >= 0 else float("nan"),
                        d.raw_score if d.candidate >= 0 else float("nan"),
                        d.accepted, d.timings, extra)
             bar.update(1)

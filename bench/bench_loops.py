@@ -1,0 +1,324 @@
+#!/usr/bin/env python
+"""Loop-closure benchmark (issue 5) on the real data in ``../shared/data``.
+
+Presets side by side (the default, the paper, the DBoW2/DLoopDetector baselines and the
+ablations) on:
+
+* ``corridor``: a two-pass indoor set (reference pass, then query pass, one sequence); query i
+  closes a loop with reference i+-2 (its ground truth file). Protocols exact / tolerance /
+  iBoW-LCD with n = 2, the detector's exclusion window of 20 frames.
+* ``camvid/test``: a real urban retrieval task. Frames where the camera has not moved since
+  the last kept one are dropped first (median LK optical flow of tracked corners under 3 px:
+  the car stands still there, while people and other cars may move); then per sequence the even frames form the database and the odd ones
+  are queries whose true matches are the database frames directly before and after them.
+  Recall@1 (the top BoW candidate, before verification) and R@100P of accepted detections;
+  masking from CamVid's own test labels (an upper bound for masking) and, when the network's
+  weights are there, from the shipped network.
+* ``desk_loop10``: 10 frames circling a desk, frame 10 re-views frame 1 (no temporal
+  consistency possible: one loop frame); exclusion of 3 frames.
+* ``euroc/loop_pairs``: two real stereo loop pairs (0-1, 2-3) and their cross pairs; frames
+  stored 0, 2 then queried 1, 3: are 1->0 and 3->2 accepted, is anything else?
+
+Prints tables and writes ``bench/results/loops.json``. Runs in a few minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from stablecues.datasets import open_dataset
+from stablecues.datasets.base import Frame
+from stablecues.detection import LoopDetector, describe_preset, preset
+from stablecues.detection.run import run_dataset
+from stablecues.errors import ModelError
+from stablecues.evaluation import evaluate_detections, evaluate_run, load_run
+from stablecues.imageio import read_image
+
+HERE = Path(__file__).resolve().parent
+SHARED = HERE.parent.parent / "shared" / "data"
+MAIN_PRESETS = ["default", "paper", "bow", "bow-nogeom"]
+ABLATIONS = ["mask-only", "triangles-only", "paper-triangles-noise", "dilate", "patch", "dynamic"]
+PROTOCOLS = (("exact", 0), ("tolerance", 2), ("ibow", 2))
+
+
+def uses_masking(name: str) -> bool:
+    return preset(name).masking is not None
+
+
+def network_available() -> bool:
+    try:
+        from stablecues.semantics.inference import SegmentationModel
+
+        SegmentationModel.load()
+        return True
+    except (ModelError, ImportError, FileNotFoundError):
+        return False
+
+
+# ---------------------------------------------------------------------------------- corridor
+def bench_corridor(names: list[str], work: Path) -> dict[str, Any]:
+    root = SHARED / "corridor"
+    ds = open_dataset(root, format="vprbench")
+    gt = ds.ground_truth()
+    out: dict[str, Any] = {"frames": len(ds), "gt_file": str(gt.path), "protocols": {}}
+    for name in names:
+        run_dir = work / f"corridor_{name}"
+        t = time.perf_counter()
+        summary = run_dataset(ds, preset(name), run_dir, preset_name=name, progress=False, pictures=0)
+        wall = time.perf_counter() - t
+        run = load_run(run_dir)
+        res: dict[str, Any] = {
+            "ms_per_frame": round(summary.ms_per_frame, 2),
+            "wall_s": round(wall, 1),
+            "loops": summary.loops,
+            "mask_fallbacks": summary.mask_fallbacks,
+        }
+        for proto, tol in PROTOCOLS:
+            ev, _ = evaluate_run(run, gt, protocol=proto, tolerance=tol, exclude=20)
+            res[f"{proto}"] = {
+                "r_at_100p": round(ev.recall_at_100p, 4),
+                "auc": round(ev.auc, 4),
+                "tp": ev.tp,
+                "fp": ev.fp,
+                "fn": ev.fn,
+                "positives": ev.positives,
+            }
+        out[name] = res
+        print(
+            f"  corridor {name:22s} R@100P exact {res['exact']['r_at_100p']:.3f} "
+            f"tol {res['tolerance']['r_at_100p']:.3f} ibow {res['ibow']['r_at_100p']:.3f} "
+            f"(TP {res['tolerance']['tp']} FP {res['tolerance']['fp']}) {res['ms_per_frame']} ms/frame",
+            flush=True,
+        )
+    return out
+
+
+# ---------------------------------------------------------------------------------- camvid
+STILL_PX = 3.0  # median optical flow under this (of 480 px) from the last kept frame: the car stands still
+
+
+def median_flow(a: np.ndarray, b: np.ndarray) -> float:
+    """Median displacement in pixels of corners tracked from image a to image b (LK flow).
+
+    A camera standing still has near-zero flow on the static background even when people and
+    cars move, which a plain image difference cannot tell apart from real motion."""
+    p = cv2.goodFeaturesToTrack(a, 400, 0.01, 7)
+    if p is None:
+        return float("inf")
+    q, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p, None, winSize=(21, 21), maxLevel=3)
+    ok = st.ravel() == 1
+    if not ok.any():
+        return float("inf")
+    return float(np.median(np.linalg.norm((q - p).reshape(-1, 2)[ok], axis=1)))
+
+
+def camvid_frames() -> tuple[list[Frame], list[int], list[int], np.ndarray]:
+    """Deduplicated CamVid test frames with labels; database / query indices; ground truth."""
+    files = sorted((SHARED / "camvid" / "test").glob("*.jpg"))
+    kept: list[tuple[str, Path]] = []
+    last: np.ndarray | None = None
+    last_seq = None
+    for f in files:
+        seq = f.name.split("_")[0]
+        grey = read_image(f, grey=True)
+        if seq == last_seq and last is not None and median_flow(last, grey) < STILL_PX:
+            continue
+        kept.append((seq, f))
+        last, last_seq = grey, seq
+    db_files, q_files = [], []
+    by_seq: dict[str, list[Path]] = {}
+    for seq, f in kept:
+        by_seq.setdefault(seq, []).append(f)
+    truth_pairs: list[tuple[Path, list[Path]]] = []
+    for seq_files in by_seq.values():
+        evens = seq_files[0::2]
+        db_files += evens
+        for k, f in enumerate(seq_files):
+            if k % 2 == 1:
+                q_files.append(f)
+                truth_pairs.append(
+                    (f, [seq_files[k - 1]] + ([seq_files[k + 1]] if k + 1 < len(seq_files) else []))
+                )
+    order = db_files + q_files
+    index = {f: i for i, f in enumerate(order)}
+    frames = []
+    for i, f in enumerate(order):
+        labels = cv2.imread(str(SHARED / "camvid" / "testannot" / (f.stem + ".png")), cv2.IMREAD_UNCHANGED)
+        frames.append(Frame(index=i, name=f.name, timestamp=float(i), image=read_image(f), labels=labels))
+    gt = np.zeros((len(order), len(order)), bool)
+    for q, truths in truth_pairs:
+        for t in truths:
+            gt[index[q], index[t]] = True
+    return frames, list(range(len(db_files))), [index[q] for q, _ in truth_pairs], gt
+
+
+def bench_camvid(names: list[str], network: bool) -> dict[str, Any]:
+    frames, db_idx, q_idx, gt = camvid_frames()
+    out: dict[str, Any] = {
+        "database": len(db_idx),
+        "queries": len(q_idx),
+        "dropped_static": 233 - len(frames),
+    }
+    retrieval = {"query": {"exclude_recent": 0, "temporal_k": 1, "use_nss": False, "alpha": 0.0}}
+    for name in names:
+        sources = ["labels", "network"] if uses_masking(name) else ["none"]
+        for source in sources:
+            if source == "network" and not network:
+                continue
+            over: dict[str, Any] = dict(retrieval)
+            if source != "none":
+                over["semantic_source"] = source
+            det = LoopDetector(preset(name, over))
+            for i in db_idx:
+                det.store(frames[i])
+            top1, cands, scores, totals, fallbacks = [], [], [], [], 0
+            for i in q_idx:
+                d = det.process(frames[i], store=False)
+                top1.append(d.candidate_frame >= 0 and gt[i, d.candidate_frame])
+                cands.append(d.candidate_frame if d.accepted else -1)
+                scores.append(d.confidence)
+                totals.append(d.timings["total"])
+                fallbacks += int(d.mask_fallback)
+            ev = evaluate_detections(gt, np.array(q_idx), np.array(cands), np.array(scores), protocol="exact")
+            key = name if source == "none" else f"{name}[{source}]"
+            out[key] = {
+                "recall_at_1": round(float(np.mean(top1)), 4),
+                "r_at_100p": round(ev.recall_at_100p, 4),
+                "auc": round(ev.auc, 4),
+                "tp": ev.tp,
+                "fp": ev.fp,
+                "positives": ev.positives,
+                "ms_per_query": round(float(np.mean(totals)), 2),
+                "mask_fallbacks": fallbacks,
+            }
+            print(
+                f"  camvid {key:30s} recall@1 {out[key]['recall_at_1']:.3f} R@100P {ev.recall_at_100p:.3f} "
+                f"(TP {ev.tp} FP {ev.fp} of {ev.positives}) {out[key]['ms_per_query']} ms/query",
+                flush=True,
+            )
+            det.close()
+    return out
+
+
+# ---------------------------------------------------------------------------------- small sets
+def bench_desk(names: list[str]) -> dict[str, Any]:
+    folder = SHARED / "desk_loop10"
+    frames = [
+        Frame(index=i, name=f"{i + 1}.png", timestamp=float(i), image=read_image(folder / f"{i + 1}.png"))
+        for i in range(10)
+    ]
+    out: dict[str, Any] = {}
+    for name in names:
+        over = {"query": {"exclude_recent": 3, "temporal_k": 1}}
+        det = LoopDetector(preset(name, over))
+        decisions = [det.process(f) for f in frames]
+        loops = [(d.frame_index + 1, d.candidate_frame + 1) for d in decisions if d.accepted]
+        last = decisions[-1]
+        out[name] = {
+            "loops_1based": loops,
+            "frame10": last.status.value,
+            "frame10_candidate": last.candidate_frame + 1,
+            "true_loop_found": (10, 1) in loops,
+            "false_loops": [p for p in loops if p != (10, 1)],
+            "ms_per_frame": round(float(np.mean([d.timings["total"] for d in decisions])), 2),
+        }
+        print(
+            f"  desk_loop10 {name:22s} loops {loops} frame 10: {last.status.value} -> {last.candidate_frame + 1}",
+            flush=True,
+        )
+    return out
+
+
+def bench_euroc(names: list[str]) -> dict[str, Any]:
+    from stablecues.geometry import load_euroc_stereo
+
+    root = SHARED / "euroc" / "loop_pairs"
+    calib = load_euroc_stereo(root / "sensorLeft.yaml", root / "sensorRight.yaml")
+
+    def frame(i: int, k: int) -> Frame:
+        return Frame(
+            index=k,
+            name=f"left_img_{i}.png",
+            timestamp=float(k),
+            image=read_image(root / f"left_img_{i}.png", grey=True),
+            right=read_image(root / f"right_img_{i}.png", grey=True),
+            calibration=calib,
+        )
+
+    out: dict[str, Any] = {}
+    for name in names:
+        over = {
+            "query": {"exclude_recent": 0, "temporal_k": 1, "use_nss": False, "alpha": 0.0},
+            "features": {"n_features": 2000},
+        }
+        if uses_masking(name):
+            over["semantic_source"] = "network"
+        try:
+            det = LoopDetector(preset(name, over))
+            det.store(frame(0, 0))
+            det.store(frame(2, 1))
+            d1 = det.process(frame(1, 2), store=False)
+            d3 = det.process(frame(3, 3), store=False)
+        except ModelError as exc:
+            out[name] = {"skipped": str(exc)}
+            continue
+        names_of = {0: "0", 1: "2"}
+
+        def row(d: Any, want: int) -> dict[str, Any]:
+            v = d.verification
+            return {
+                "candidate": names_of.get(d.candidate, "-"),
+                "accepted": d.accepted,
+                "correct": d.accepted and d.candidate == want,
+                "verification": None if v is None else v.reason,
+            }
+
+        out[name] = {"1->0": row(d1, 0), "3->2": row(d3, 1)}
+        print(
+            f"  euroc {name:22s} 1->{out[name]['1->0']['candidate']} {d1.status.value}; "
+            f"3->{out[name]['3->2']['candidate']} {d3.status.value}",
+            flush=True,
+        )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "loops.json")
+    ap.add_argument("--quick", action="store_true", help="main presets only, no ablations")
+    args = ap.parse_args()
+    if not SHARED.exists():
+        sys.exit(f"{SHARED} is absent: this benchmark needs the real data")
+    network = network_available()
+    names = MAIN_PRESETS + ([] if args.quick else ABLATIONS)
+    runnable = [n for n in names if network or not uses_masking(n)]
+    results: dict[str, Any] = {
+        "presets": {n: describe_preset(n) for n in names},
+        "network_weights": network,
+        "note": "masking presets without network weights run on camvid with its ground-truth labels only",
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        print("corridor (two-pass, indoor):", flush=True)
+        results["corridor"] = bench_corridor(runnable, Path(tmp))
+    print("camvid/test retrieval:", flush=True)
+    results["camvid"] = bench_camvid(names, network)
+    print("desk_loop10:", flush=True)
+    results["desk_loop10"] = bench_desk(runnable)
+    print("euroc/loop_pairs:", flush=True)
+    results["euroc_pairs"] = bench_euroc(runnable)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
+    print(f"written {args.out}")
+
+
+if __name__ == "__main__":
+    main()
