@@ -9,8 +9,9 @@ ablations) on:
   iBoW-LCD with n = 2, the detector's exclusion window of 20 frames.
 * ``camvid/test``: a real urban retrieval task. Frames where the camera has not moved since
   the last kept one are dropped first (median LK optical flow of tracked corners under 3 px:
-  the car stands still there, while people and other cars may move); then per sequence the even frames form the database and the odd ones
-  are queries whose true matches are the database frames directly before and after them.
+  the car stands still there, while people and other cars may move); then per sequence the
+  even frames form the database and the odd ones are queries whose true matches are the
+  database frames directly before and after them.
   Recall@1 (the top BoW candidate, before verification) and R@100P of accepted detections;
   masking from CamVid's own test labels (an upper bound for masking) and, when the network's
   weights are there, from the shipped network.
@@ -232,7 +233,8 @@ def bench_desk(names: list[str]) -> dict[str, Any]:
             "ms_per_frame": round(float(np.mean([d.timings["total"] for d in decisions])), 2),
         }
         print(
-            f"  desk_loop10 {name:22s} loops {loops} frame 10: {last.status.value} -> {last.candidate_frame + 1}",
+            f"  desk_loop10 {name:22s} loops {loops} "
+            f"frame 10: {last.status.value} -> {last.candidate_frame + 1}",
             flush=True,
         )
     return out
@@ -271,12 +273,10 @@ def bench_euroc(names: list[str]) -> dict[str, Any]:
         except ModelError as exc:
             out[name] = {"skipped": str(exc)}
             continue
-        names_of = {0: "0", 1: "2"}
-
         def row(d: Any, want: int) -> dict[str, Any]:
             v = d.verification
             return {
-                "candidate": names_of.get(d.candidate, "-"),
+                "candidate": {0: "0", 1: "2"}.get(d.candidate, "-"),
                 "accepted": d.accepted,
                 "correct": d.accepted and d.candidate == want,
                 "verification": None if v is None else v.reason,
