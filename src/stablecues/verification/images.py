@@ -160,6 +160,8 @@ class ImagePairVerifier:
                 config=self.depth_config,
             )
         else:
+            if self.rectifier is not None:  # keypoints refer to the rectified camera in every case
+                left = self.rectifier.rectify_left(left)
             feats, fvec = self.extract(left)
         return Frame(image=left, view=View(feats, fvec, points))
 

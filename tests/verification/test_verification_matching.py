@@ -1,0 +1,129 @@
+"""Correspondences: Hamming distances, ratio test, direct index, cross-check, empty inputs."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from stablecues.errors import InputError
+from stablecues.types import Features, FeatureVector
+from stablecues.verification import hamming_matrix, hamming_pairs, match_features
+
+
+def _features(desc: np.ndarray) -> Features:
+    n = desc.shape[0]
+    rng = np.random.default_rng(n)
+    return Features(
+        keypoints=rng.uniform(0, 100, (n, 2)).astype(np.float32),
+        descriptors=desc,
+        octaves=np.zeros(n, np.int16),
+        angles=np.zeros(n, np.float32),
+        responses=np.ones(n, np.float32),
+        sizes=np.full(n, 31.0, np.float32),
+        image_size=(100, 100),
+    )
+
+
+def _flip(desc: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
+    out = desc.copy()
+    for row in out:
+        for b in rng.choice(256, bits, replace=False):
+            row[b // 8] ^= np.uint8(1 << (b % 8))
+    return out
+
+
+def test_hamming_by_hand() -> None:
+    a = np.zeros((2, 32), np.uint8)
+    b = np.zeros((3, 32), np.uint8)
+    a[1, :] = 255
+    b[1, 0] = 0b1011
+    b[2, 31] = 0xFF
+    d = hamming_matrix(a, b)
+    np.testing.assert_array_equal(d, [[0, 3, 8], [256, 253, 248]])
+    np.testing.assert_array_equal(hamming_pairs(a, b, np.array([1, 0]), np.array([2, 1])), [248, 3])
+    with pytest.raises(InputError):
+        hamming_matrix(a[:, :16], b)
+
+
+def test_brute_force_agrees_with_opencv() -> None:
+    rng = np.random.default_rng(0)
+    cand = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    query = _flip(cand[rng.permutation(300)[:200]], 20, rng)
+    m = match_features(_features(query), _features(cand), ratio=1.0, max_distance=256)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING).match(query, cand)
+    expected = {x.queryIdx: (x.trainIdx, int(x.distance)) for x in bf}
+    for q, d in zip(m.query, m.distance, strict=True):  # ties may pick another candidate
+        assert expected[int(q)][1] == d
+    assert len(m) == 200
+    assert (np.diff(m.distance) >= 0).all()  # ranked, best first
+
+
+def test_ratio_test_and_ceiling() -> None:
+    rng = np.random.default_rng(1)
+    cand = rng.integers(0, 256, (2, 32), dtype=np.uint8)
+    query = _flip(cand[:1], 10, rng)
+    # an ambiguous candidate: the second candidate made almost equal to the first
+    ambiguous = np.vstack([cand[0], _flip(cand[:1], 2, rng)[0]])
+    assert len(match_features(_features(query), _features(ambiguous), ratio=0.8)) == 0
+    m = match_features(_features(query), _features(cand), ratio=0.8)
+    assert len(m) == 1 and m.distance[0] == 10 and m.ratio[0] < 0.2
+    assert len(match_features(_features(query), _features(cand), max_distance=9)) == 0
+    assert m.confidence[0] == pytest.approx(1 - 10 / 128)
+
+
+def test_one_to_one() -> None:
+    rng = np.random.default_rng(2)
+    cand = rng.integers(0, 256, (1, 32), dtype=np.uint8)
+    query = np.vstack([_flip(cand, 5, rng), _flip(cand, 12, rng)])
+    m = match_features(_features(query), _features(cand), ratio=1.0)
+    assert len(m) == 1 and m.query[0] == 0 and m.distance[0] == 5
+
+
+def test_direct_index_restricts_comparisons() -> None:
+    rng = np.random.default_rng(3)
+    cand = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    query = _flip(cand, 4, rng)
+    qf = FeatureVector(np.array([0, 0, 1, 1, 2, -1], np.int32), 3)
+    cf = FeatureVector(np.array([0, 0, 1, 5, 2, 2], np.int32), 3)
+    m = match_features(_features(query), _features(cand), qf, cf)
+    # feature 3 sits under another node, feature 5 under none: neither is compared
+    assert sorted(zip(m.query.tolist(), m.candidate.tolist(), strict=True)) == [
+        (0, 0),
+        (1, 1),
+        (2, 2),
+        (4, 4),
+    ]
+    with pytest.raises(InputError):
+        match_features(_features(query), _features(cand), qf, None)
+    with pytest.raises(InputError):
+        match_features(_features(query), _features(cand), FeatureVector(np.zeros(2, np.int32), 3), cf)
+
+
+def test_direct_index_agrees_with_brute_force_in_one_node() -> None:
+    rng = np.random.default_rng(4)
+    cand = rng.integers(0, 256, (80, 32), dtype=np.uint8)
+    query = _flip(cand[rng.permutation(80)], 30, rng)
+    one = FeatureVector(np.zeros(80, np.int32), 0)
+    a = match_features(_features(query), _features(cand), one, one)
+    b = match_features(_features(query), _features(cand))
+    np.testing.assert_array_equal(a.pairs(), b.pairs())
+    np.testing.assert_array_equal(a.distance, b.distance)
+
+
+def test_cross_check() -> None:
+    rng = np.random.default_rng(5)
+    cand = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    query = _flip(cand, 8, rng)
+    for fv in (None, FeatureVector(np.zeros(40, np.int32), 0)):
+        m = match_features(_features(query), _features(cand), fv, fv, cross_check=True)
+        np.testing.assert_array_equal(np.sort(m.query), m.candidate[np.argsort(m.query)])
+
+
+def test_empty_inputs() -> None:
+    empty = Features.empty((100, 100))
+    some = _features(np.zeros((3, 32), np.uint8))
+    for a, b in ((empty, some), (some, empty), (empty, empty)):
+        m = match_features(a, b)
+        assert len(m) == 0
+        assert m.pairs().shape == (0, 2) and m.distance.dtype == np.int32

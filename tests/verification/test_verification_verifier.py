@@ -1,0 +1,169 @@
+"""The Verifier on synthetic scenes: accepted under a rigid motion, rejected otherwise, fallbacks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from stablecues.config import merge
+from stablecues.errors import ConfigError
+from stablecues.geometry import NoiseModel, PinholeCamera, Points3D, rotation_angle_deg
+from stablecues.geometry.pose import _so3_exp
+from stablecues.types import BowVector, Entry, Features, FeatureVector
+from stablecues.verification import Method, Status, VerificationConfig, Verifier, View, preset
+
+CAM = PinholeCamera(450.0, 450.0, 376.0, 240.0, 752, 480)
+NOISE = NoiseModel.stereo(450.0, 0.11)
+
+
+def _features(kp: np.ndarray, desc: np.ndarray) -> Features:
+    n = len(kp)
+    return Features(
+        keypoints=kp.astype(np.float32),
+        descriptors=desc,
+        octaves=np.zeros(n, np.int16),
+        angles=np.zeros(n, np.float32),
+        responses=np.ones(n, np.float32),
+        sizes=np.full(n, 31.0, np.float32),
+        image_size=(752, 480),
+    )
+
+
+def _noisy(x: np.ndarray, rng: np.random.Generator) -> Points3D:
+    clean = NOISE.points(x)
+    noisy = x + (x / x[:, 2:3]) * (clean.sigma_depth[:, None] * rng.normal(size=(len(x), 1)))
+    return NOISE.points(noisy)
+
+
+def _scene(seed: int = 0, n: int = 150, rigid: bool = True, wrong: float = 0.15, swapped: float = 0.0):
+    """Candidate and query views of one scene; ``wrong`` of the query descriptors are unrelated
+    (no match), ``swapped`` are exchanged between features (wrong matches)."""
+    rng = np.random.default_rng(seed)
+    rot = _so3_exp(rng.normal(size=3) * 0.1)
+    t = rng.normal(size=3) * 0.3
+    xc = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(2, 5, n)]
+    xq = xc @ rot.T + t
+    if not rigid:  # a different geometry seen with the same descriptors
+        xq = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(2, 5, n)]
+    uc, uq = CAM.project(xc), CAM.project(xq)
+    inside = np.isfinite(uq).all(1) & (uq[:, 0] > 0) & (uq[:, 0] < 752) & (uq[:, 1] > 0) & (uq[:, 1] < 480)
+    xc, xq, uc, uq = xc[inside], xq[inside], uc[inside], uq[inside]
+    m = len(xc)
+    desc_c = rng.integers(0, 256, (m, 32), dtype=np.uint8)
+    desc_q = desc_c.copy()
+    for row in desc_q:  # ~10 bits flipped per descriptor
+        idx = rng.choice(256, 10, replace=False)
+        np.bitwise_xor.at(row, idx // 8, (1 << (idx % 8)).astype(np.uint8))
+    bad = rng.random(m) < wrong
+    desc_q[bad] = rng.integers(0, 256, (int(bad.sum()), 32), dtype=np.uint8)
+    swap = np.flatnonzero(~bad & (rng.random(m) < swapped))
+    desc_q[swap] = desc_q[np.roll(swap, 1)]
+    perm = rng.permutation(m)  # the query lists its features in another order
+    q = View(_features(uq[perm] + rng.normal(size=(m, 2)) * 0.3, desc_q[perm]), None, _noisy(xq[perm], rng))
+    c = View(_features(uc, desc_c), None, _noisy(xc, rng))
+    return q, c, rot, t
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_rigid_scene_is_accepted_with_its_pose(seed: int) -> None:
+    q, c, rot, t = _scene(seed)
+    res = Verifier(camera=CAM).verify(q, c)
+    assert res.accepted and res.status is Status.ACCEPTED and res.method is Method.TRIANGLES
+    assert not res.fallback
+    assert res.n_triangles_agree >= 2 and len(res.triangles) == 10
+    assert res.rotation is not None and res.translation is not None
+    assert rotation_angle_deg(res.rotation.T @ rot) < 0.5
+    assert np.linalg.norm(res.translation - t) < 0.05
+    assert res.n_inliers >= 20 and res.inliers.shape == (res.n_matches,)
+    assert res.pose is not None and res.pixels_query is not None
+    np.testing.assert_array_equal(res.pixels_query, q.features.keypoints[res.matches.query])
+    assert set(res.timings) >= {"matching", "triangles", "pnp", "total"}
+    json.dumps(res.to_dict())  # JSON-serialisable
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_non_rigid_scene_is_rejected(seed: int) -> None:
+    q, c, _, _ = _scene(seed, rigid=False)
+    res = Verifier(camera=CAM).verify(q, c)
+    assert not res.accepted
+    assert res.status is Status.TRIANGLES_DISAGREE
+    assert res.n_triangles_agree <= 1
+    assert res.rotation is None
+
+
+def test_fallbacks_without_3d() -> None:
+    q, c, rot, _ = _scene(4)
+    v = Verifier(camera=CAM)
+    res = v.verify(View(q.features), View(c.features))
+    assert res.fallback and res.method is Method.FUNDAMENTAL and res.accepted
+    assert res.fundamental is not None and res.n_inliers >= 12
+    res = v.verify(View(q.features), c)  # only the candidate has 3D: PnP
+    assert res.fallback and res.method is Method.PNP and res.accepted
+    assert rotation_angle_deg(res.rotation.T @ rot) < 0.5
+    strict = Verifier(merge(VerificationConfig(), {"fallback": False}), camera=CAM)
+    res = strict.verify(View(q.features), View(c.features))
+    assert not res.accepted and res.status is Status.TOO_FEW_3D
+
+
+def test_classic_verifiers() -> None:
+    q, c, _, _ = _scene(5)
+    res = Verifier(preset("pnp"), camera=CAM).verify(q, c)
+    assert res.accepted and res.method is Method.PNP and not res.fallback
+    res = Verifier(preset("dloop"), camera=CAM).verify(q, c)
+    assert res.accepted and res.method is Method.FUNDAMENTAL and not res.fallback
+    qn, cn, _, _ = _scene(5, rigid=False)
+    assert not Verifier(preset("pnp"), camera=CAM).verify(qn, cn).accepted
+    assert not Verifier(preset("dloop"), camera=CAM).verify(qn, cn).accepted
+
+
+def test_acceptance_rules() -> None:
+    q, c, _, _ = _scene(6, swapped=0.25)  # many wrong matches: some triangles must disagree
+    base = Verifier(camera=CAM).verify(q, c)
+    assert 2 <= base.n_triangles_agree < 10
+    all_rule = Verifier(preset("default", acceptance="all"), camera=CAM).verify(q, c)
+    assert not all_rule.accepted and all_rule.status is Status.TRIANGLES_DISAGREE
+    need = base.n_triangles_agree + 1
+    at_least = Verifier(preset("default", min_agree=need), camera=CAM).verify(q, c)
+    assert not at_least.accepted
+
+
+def test_too_few_matches_and_empty_frames() -> None:
+    empty = View(Features.empty((752, 480)), None, Points3D.empty(0))
+    res = Verifier(camera=CAM).verify(empty, empty)
+    assert not res.accepted and res.status is Status.TOO_FEW_MATCHES
+    assert res.n_matches == 0 and res.inliers.shape == (0,)
+    assert res.pixels_query is not None and res.pixels_query.shape == (0, 2)
+
+
+def test_database_entry_with_stored_points() -> None:
+    q, c, _, _ = _scene(7)
+    entry = Entry(
+        entry_id=3,
+        bow=BowVector.empty(),
+        fvec=FeatureVector(np.zeros(len(c.features), np.int32), 3),
+        features=c.features,
+        points3d=c.points.xyz if c.points is not None else None,
+    )
+    qv = View(q.features, FeatureVector(np.zeros(len(q.features), np.int32), 3), q.points)
+    res = Verifier(camera=CAM, noise=NOISE).verify_entry(qv, entry)
+    assert res.accepted
+    with pytest.raises(ConfigError, match="NoiseModel"):
+        Verifier(camera=CAM).verify_entry(qv, entry)
+
+
+def test_settings_are_validated() -> None:
+    with pytest.raises(ConfigError):
+        VerificationConfig(method="homography")
+    with pytest.raises(ConfigError):
+        VerificationConfig(acceptance="most")
+    with pytest.raises(ConfigError):
+        VerificationConfig(min_agree=11)
+    with pytest.raises(ConfigError):
+        preset("nope")
+    with pytest.raises(ConfigError):
+        preset("default", triangles=3)  # a typo of n_triangles
+    with pytest.raises(ConfigError, match="camera"):
+        Verifier(VerificationConfig())
+    assert Verifier(preset("paper")).config.tolerance == "relative"  # no PnP gate: no camera needed
