@@ -93,8 +93,9 @@ def time_column_seconds(path: Path, name: str, values: list[str]) -> tuple[np.nd
     """Convert a time column to seconds.
 
     The unit comes from the column name when it says (``utc_usec``, ``timestamp [ns]``,
-    ``time_ms``, ``t_s``); otherwise it is the one of s / ms / us / ns that makes the median
-    interval between rows plausible for a sensor or camera stream (5 ms to 20 s). ISO 8601
+    ``time_ms``, ``t_s``); otherwise values with a decimal point are seconds, and integers take
+    the one of s / ms / us / ns that makes the median interval between rows plausible for a
+    sensor or camera stream (5 ms to 20 s). ISO 8601
     date-times are read as UTC when they carry no zone.
 
     Returns:
@@ -113,7 +114,8 @@ def time_column_seconds(path: Path, name: str, values: list[str]) -> tuple[np.nd
             scale = factor
             break
     if scale is None:
-        scale = _guess_scale(raw)
+        # fractional values are seconds; integers get the unit that makes their spacing plausible
+        scale = 1.0 if any("." in v or "e" in v.lower() for v in values) else _guess_scale(raw)
     secs = raw * scale
     finite = secs[np.isfinite(secs)]
     is_epoch = bool(finite.size and np.median(finite) > EPOCH_THRESHOLD_S)
