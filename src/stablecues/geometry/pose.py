@@ -151,29 +151,34 @@ class _Term:
         ``R' = exp(dw) R``, ``t' = exp(dw) t + dt``."""
         y = self.transformed(rotation, translation)
         n = y.shape[0]
-        z = y[:, 2]
+        x, yy, z = y[:, 0], y[:, 1], y[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             iz = 1.0 / z
             r = (y[:, :2] * iz[:, None] - self.normalised) * self.scale
         r[~(z > 1e-9)] = np.inf
-        # d pi / d y, scaled: rows (u, v), columns (x, y, z)
+        # rows of d(residual)/dy: ju = (a, 0, -a x/z), jv = (0, b, -b y/z)
         a = self.scale[:, 0] * iz
         b = self.scale[:, 1] * iz
-        ju = np.stack((a, np.zeros(n), -a * y[:, 0] * iz), axis=1)  # (N, 3)
-        jv = np.stack((np.zeros(n), b, -b * y[:, 1] * iz), axis=1)
-        # for a row vector a: a^T [v]x = (a x v)^T
-        if self.forward:  # y = R X + t: dy = dt - [y]x dw, so d/dw = -(a x y) = y x a
-            jw_u = _cross(y, ju)
-            jw_v = _cross(y, jv)
-            jt_u, jt_v = ju, jv
-        else:  # y = R^T (X - t): dy = -R^T dt + R^T [X]x dw
-            jt_u = -(ju @ rotation.T)
-            jt_v = -(jv @ rotation.T)
-            jw_u = _cross(-jt_u, self.points)
-            jw_v = _cross(-jt_v, self.points)
+        cu = -a * x * iz
+        cv = -b * yy * iz
         jac = np.empty((n, 2, 6))
-        jac[:, 0, :3], jac[:, 0, 3:] = jt_u, jw_u
-        jac[:, 1, :3], jac[:, 1, 3:] = jt_v, jw_v
+        # for a row vector j: j^T [v]x = (j x v)^T
+        if self.forward:  # y = R X + t: dy = dt - [y]x dw, so d/dw = y x j
+            jac[:, 0, 0], jac[:, 0, 1], jac[:, 0, 2] = a, 0.0, cu
+            jac[:, 1, 0], jac[:, 1, 1], jac[:, 1, 2] = 0.0, b, cv
+            jac[:, 0, 3] = yy * cu
+            jac[:, 0, 4] = z * a - x * cu
+            jac[:, 0, 5] = -yy * a
+            jac[:, 1, 3] = yy * cv - z * b
+            jac[:, 1, 4] = -x * cv
+            jac[:, 1, 5] = x * b
+        else:  # y = R^T (X - t): dy = -R^T dt + R^T [X]x dw, so d/dt = -j R^T, d/dw = (j R^T) x X
+            ju = np.stack((a, np.zeros(n), cu), axis=1) @ rotation.T
+            jv = np.stack((np.zeros(n), b, cv), axis=1) @ rotation.T
+            jac[:, 0, :3] = -ju
+            jac[:, 1, :3] = -jv
+            jac[:, 0, 3:] = _cross(ju, self.points)
+            jac[:, 1, 3:] = _cross(jv, self.points)
         return r, jac.reshape(2 * n, 6)
 
 
@@ -309,11 +314,14 @@ def estimate_pose_pnp(
             if sum(int(mk.sum()) for mk in masks) < 4:
                 break
             selected = [t.select(mk) for t, mk in zip(terms, masks, strict=True)]
-            rotation, translation = _refine(selected, rotation, translation, gate, iterations=5)
+            rotation, translation = _refine(selected, rotation, translation, gate, iterations=3)
             new = [np.linalg.norm(t.residuals(rotation, translation), axis=1) <= gate for t in terms]
             if new[0].sum() < 4:
                 break
+            unchanged = all(np.array_equal(a, b) for a, b in zip(new, masks, strict=True))
             masks = new
+            if unchanged:
+                break
         inliers = masks[0]
     r = fwd.residuals(rotation, translation) * sq[idx, None]  # back to (undistorted) pixels
     err = np.linalg.norm(r, axis=1)

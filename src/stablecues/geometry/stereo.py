@@ -94,13 +94,14 @@ def _grey(name: str, image: np.ndarray) -> np.ndarray:
 def _window_std(image: np.ndarray, r: int) -> np.ndarray:
     """(H, W) float32 grey-level std of the (2r+1)^2 window around each pixel; 0 where the window
     leaves the image on the left or right (such candidates are then never chosen)."""
-    img = image.astype(np.float32, copy=False)
     w = 2 * r + 1
-    mean = cv2.boxFilter(img, cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
-    sq = cv2.sqrBoxFilter(img, cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
-    std = np.sqrt(np.maximum(sq - mean * mean, 0.0))
+    mean = cv2.boxFilter(image, cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
+    sq = cv2.sqrBoxFilter(image, cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
+    var = sq - mean * mean
+    np.maximum(var, 0.0, out=var)
+    std = np.sqrt(var, out=var)
     std[:, :r] = 0.0
-    std[:, img.shape[1] - r :] = 0.0
+    std[:, image.shape[1] - r :] = 0.0
     return std
 
 
