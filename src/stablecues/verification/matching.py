@@ -167,10 +167,10 @@ def match_features(
     candidate: Features,
     query_fvec: FeatureVector | None = None,
     candidate_fvec: FeatureVector | None = None,
-    *,
     ratio: float = 0.8,
-    max_distance: int = 64,
     cross_check: bool = False,
+    *,
+    max_distance: int = 64,
 ) -> Matches:
     """Match query features to candidate features.
 
@@ -181,9 +181,9 @@ def match_features(
             features under the same vocabulary node. Both or neither.
         candidate_fvec: the candidate's direct index.
         ratio: Lowe's ratio; a match needs ``best < ratio * second_best``.
-        max_distance: largest accepted Hamming distance of the best candidate.
         cross_check: also require the query feature to be the candidate feature's best match
             (among the features it is compared with).
+        max_distance: largest accepted Hamming distance of the best candidate.
 
     Returns:
         One-to-one matches ranked by distance then ratio; empty (correctly shaped) when either
