@@ -232,7 +232,7 @@ def estimate_pose_pnp(
     2. robust Gauss-Newton refinement on the inliers, each residual divided by its
        keypoint's noise (``sigma_query``, e.g. ``1.2**octave`` pixels as ORB-SLAM weighs
        them), Huber loss at the 95 % chi-square gate of 2 DOF (sqrt(5.991) sigma);
-    3. inliers re-selected with that gate and the pose refined again (twice).
+    3. inliers re-selected with that gate and the pose refined again.
 
     When both frames have 3D (``points_query`` and ``pixels_candidate`` given) the refinement
     is symmetric: it also minimises the reprojection of the query's 3D points into the
@@ -310,7 +310,7 @@ def estimate_pose_pnp(
             # the reverse term starts from the RANSAC inliers that also have a query point
             terms.append(rev)
             masks.append(np.isin(ridx, idx[inliers]))
-        for _ in range(3):
+        for _ in range(2):  # refine on the RANSAC inliers, re-select, refine on those
             if sum(int(mk.sum()) for mk in masks) < 4:
                 break
             selected = [t.select(mk) for t, mk in zip(terms, masks, strict=True)]
