@@ -37,7 +37,11 @@ def _truth(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     ph = OMEGA * t
     pos = np.column_stack([RADIUS * np.cos(ph), RADIUS * np.sin(ph), 10 + 2 * np.sin(2 * np.pi * t / 20)])
     vel = np.column_stack(
-        [-RADIUS * OMEGA * np.sin(ph), RADIUS * OMEGA * np.cos(ph), 2 * (2 * np.pi / 20) * np.cos(2 * np.pi * t / 20)]
+        [
+            -RADIUS * OMEGA * np.sin(ph),
+            RADIUS * OMEGA * np.cos(ph),
+            2 * (2 * np.pi / 20) * np.cos(2 * np.pi * t / 20),
+        ]
     )
     acc = np.column_stack(
         [
@@ -57,7 +61,9 @@ def _r_enu(rpy: np.ndarray) -> np.ndarray:
     return geo.R_ENU_NED @ geo.quat_to_matrix(q)
 
 
-def simulate(*, duration: float = 40.0, imu_hz: float = 50.0, lag: float = 0.0, seed: int = 0) -> tuple[FlightLog, NavSolution]:
+def simulate(
+    *, duration: float = 40.0, imu_hz: float = 50.0, lag: float = 0.0, seed: int = 0
+) -> tuple[FlightLog, NavSolution]:
     rng = np.random.default_rng(seed)
     ti = np.arange(0.0, duration, 1.0 / imu_hz)
     _, _, acc, rpy = _truth(ti)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from conftest import shared_path
 
 pytest.importorskip("pymavlink")
@@ -63,7 +64,21 @@ def test_uob_flights_messages_and_modes() -> None:
     a = _log("uob_ardupilot_copter_2023", "2023-07-06_10-12-18.bin")
     b = _log("uob_ardupilot_copter_2023", "2023-07-06_10-18-44.bin")
     for log in (a, b):
-        for msg in ("GPS", "GPA", "BARO", "IMU", "ATT", "AHR2", "MAG", "MODE", "ORGN", "POS", "XKF1", "XKQ", "PARM"):
+        for msg in (
+            "GPS",
+            "GPA",
+            "BARO",
+            "IMU",
+            "ATT",
+            "AHR2",
+            "MAG",
+            "MODE",
+            "ORGN",
+            "POS",
+            "XKF1",
+            "XKQ",
+            "PARM",
+        ):
             assert log.counts.get(msg, 0) > 0, msg
         assert log.vehicle.startswith("ArduCopter V4.3")
         assert log.onboard is not None and log.onboard.name == "XKF1[0]"

@@ -7,13 +7,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from conftest import shared_path
 
 pytest.importorskip("pymavlink")
 pytest.importorskip("pymap3d")
 
-from stablecues.mav import compare_solutions, read_log, run_ekf  # noqa: E402
-from stablecues.mav import sync  # noqa: E402
+from stablecues.mav import (  # noqa: E402
+    compare_solutions,
+    read_log,
+    run_ekf,
+    sync,  # noqa: E402
+)
 from stablecues.mav.plots import flight_figures, mode_bands_of, mode_colour  # noqa: E402
 
 
@@ -53,7 +58,9 @@ def test_zr10_poses_and_revisit_ground_truth(tmp_path: Path) -> None:
     poses = sync.poses_for_frames(frames, log, solution)
     assert poses.valid.all() and not poses.has_attitude
     # the frames' own geotags were assigned from this track: the interpolated poses agree
-    tags = sync.geo.geodetic_to_enu(frames.geotags[:, 0], frames.geotags[:, 1], frames.geotags[:, 2], poses.origin)
+    tags = sync.geo.geodetic_to_enu(
+        frames.geotags[:, 0], frames.geotags[:, 1], frames.geotags[:, 2], poses.origin
+    )
     assert np.abs(tags - poses.positions).max() < 0.1
     # 70 m above ground: the frames fly about 60-70 m above the first fix
     assert 50 < np.median(poses.positions[:, 2]) < 80
@@ -61,7 +68,9 @@ def test_zr10_poses_and_revisit_ground_truth(tmp_path: Path) -> None:
     est = sync.poses_for_frames(frames, log, solution, offset="estimate")
     assert abs(est.offset) < 0.05
 
-    gt = sync.loops_from_trajectory(poses.positions, max_distance=8.0, times=poses.frame_times, min_gap_s=20.0)
+    gt = sync.loops_from_trajectory(
+        poses.positions, max_distance=8.0, times=poses.frame_times, min_gap_s=20.0
+    )
     assert gt.shape == (17, 17) and not np.triu(gt).any()
     ids = [int(n[4:8]) for n in poses.names]
     pairs = {(ids[i], ids[j]) for i, j in zip(*np.nonzero(gt), strict=True)}

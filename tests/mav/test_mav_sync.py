@@ -41,9 +41,8 @@ def _track_log(tmp_path: Path, *, speed: float = 5.0) -> Path:
     boot0, utc0 = 100.0, 1.7e9
     rows = ["timestamp,utc_usec,lat,lon,alt_msl"]
     for k in range(len(t)):
-        rows.append(
-            f"{int((boot0 + t[k]) * 1e6)},{int((utc0 + t[k]) * 1e6)},{llh[k, 0]:.9f},{llh[k, 1]:.9f},{llh[k, 2]:.3f}"
-        )
+        stamps = f"{int((boot0 + t[k]) * 1e6)},{int((utc0 + t[k]) * 1e6)}"
+        rows.append(f"{stamps},{llh[k, 0]:.9f},{llh[k, 1]:.9f},{llh[k, 2]:.3f}")
     path = tmp_path / "track.csv"
     path.write_text("\n".join(rows) + "\n")
     return path
@@ -61,7 +60,9 @@ def test_gnss_csv_log_and_frame_clocks(tmp_path: Path) -> None:
     assert log.boot_time_offset == pytest.approx(100.0) and log.utc_offset == pytest.approx(1.7e9)
     _images(tmp_path / "img", ["a.png", "b.png", "c.png"])
     # CSV with names (in another order) and UTC times
-    (tmp_path / "times.csv").write_text("image,utc\nc.png,1700000030.0\na.png,1700000010.0\nb.png,1700000020.0\n")
+    (tmp_path / "times.csv").write_text(
+        "image,utc\nc.png,1700000030.0\na.png,1700000010.0\nb.png,1700000020.0\n"
+    )
     frames = sync.read_frames(tmp_path / "img", tmp_path / "times.csv")
     assert [p.name for p in frames.paths] == ["a.png", "b.png", "c.png"] and frames.is_utc
     np.testing.assert_allclose(sync.frame_log_times(frames, log), [10.0, 20.0, 30.0])

@@ -295,11 +295,11 @@ def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
     changes: list[ModeChange] = []
     for b, m in rows["MODE"]:
         t = (b if b is not None else t0) - t0
-        raw = m.Mode
-        if isinstance(raw, str):
-            changes.append(ModeChange(t, raw.upper(), -1))
+        raw = m.ModeNum if "ModeNum" in m._fieldnames else m.Mode
+        if isinstance(raw, str) and not raw.strip().lstrip("-").isdigit():
+            changes.append(ModeChange(t, raw.strip().upper(), -1))  # very old logs name the mode
             continue
-        number = int(m.ModeNum) if "ModeNum" in m._fieldnames else int(raw)
+        number = int(raw)
         changes.append(ModeChange(t, str(mapping.get(number, f"MODE_{number}")), number))
 
     return FlightLog(
