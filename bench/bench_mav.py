@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     config = EkfConfig()
 
     flights = [evaluate(args.data / f / n, config) for f, n in ACCEPTANCE]
+    for f in flights:  # the acceptance figures, at the top of each flight's entry
+        f["ekf_h_rmse_m"] = f["onboard"]["ekf_h_rmse_m"]  # type: ignore[index]
+        f["ekf_v_rmse_m"] = f["onboard"]["ekf_v_rmse_m"]  # type: ignore[index]
     context = [evaluate(args.data / f / n, config) for f, n in CONTEXT if (args.data / f / n).is_file()]
 
     def pooled(key: str) -> float:
