@@ -187,7 +187,13 @@ def test_write_image_folder(tmp_path: Path) -> None:
     assert poses.valid.tolist() == [True, True, False]
     with pytest.raises(InputError):
         sync.write_image_folder(tmp_path / "ds", frames, poses, loops=np.zeros((3, 3), bool))
-    out = sync.write_image_folder(tmp_path / "ds", frames, poses, loops=np.zeros((2, 2), bool))
+    (tmp_path / "cam.yaml").write_text("%YAML:1.0\nCamera.fx: 500.0\n")
+    with pytest.raises(DatasetError, match="calibration"):
+        sync.write_image_folder(tmp_path / "ds", frames, poses, calibration=tmp_path / "none.yaml")
+    out = sync.write_image_folder(
+        tmp_path / "ds", frames, poses, loops=np.zeros((2, 2), bool), calibration=tmp_path / "cam.yaml"
+    )
+    assert (out / "calib.yaml").read_text().startswith("%YAML:1.0")
     assert sorted(p.name for p in (out / "images").iterdir()) == ["000000_110.0.png", "000001_120.0.png"]
     assert sorted(p.name for p in (out / "right").iterdir()) == ["000000_110.0.png", "000001_120.0.png"]
     np.testing.assert_allclose(np.loadtxt(out / "times.txt"), [110.0, 120.0])

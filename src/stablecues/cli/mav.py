@@ -84,6 +84,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         metavar="DIR",
         help="also write the image-folder dataset (images, times.txt, poses.txt, loops.npy)",
     )
+    poses.add_argument(
+        "--calib", type=Path, metavar="YAML", help="camera settings (ORB-SLAM style) copied into --dataset"
+    )
     _add_gt_options(poses)
 
     gt = sub.add_parser("gt", help="loop ground truth (.npy) and its picture from a TUM poses file")
@@ -223,7 +226,7 @@ def _poses(args: argparse.Namespace) -> int:
             min_gap_s=args.min_gap_s,
             min_gap_frames=args.min_gap_frames,
         )
-        out = sync.write_image_folder(args.dataset, frames, poses, loops=loops)
+        out = sync.write_image_folder(args.dataset, frames, poses, loops=loops, calibration=args.calib)
         print(f"{out}: image-folder dataset, {int(keep.sum())} frames, {int(loops.sum())} loop pairs")
     return 0
 

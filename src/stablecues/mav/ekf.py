@@ -82,6 +82,11 @@ class EkfConfig:
         max_imu_gap_s: a longer gap between IMU samples (logging paused, e.g. while disarmed) is
             not integrated: the state waits and position/velocity are re-anchored on the next
             GNSS fix.
+        predict_rate_hz: IMUs logged faster than this are averaged in blocks of consecutive
+            samples (a delta-velocity / delta-angle per block) so that prediction runs at about
+            this rate; the noise is scaled so that the filter's uncertainty does not depend on it.
+        max_aiding_rate_hz: barometer and compass samples closer than 1 / this are skipped (EKF3
+            fuses them at 10-20 Hz; PX4 logs may hold them at the IMU rate).
         use_gnss_velocity, use_gnss_altitude, use_baro, use_mag: switch a measurement off.
     """
 
@@ -104,6 +109,8 @@ class EkfConfig:
     init_window_s: float = 1.0
     gnss_reset_s: float = 5.0
     max_imu_gap_s: float = 1.0
+    predict_rate_hz: float = 100.0
+    max_aiding_rate_hz: float = 20.0
     use_gnss_velocity: bool = True
     use_gnss_altitude: bool = True
     use_baro: bool = True
@@ -211,6 +218,33 @@ EK3_ACC_P_NSE = 0.35  # m/s^2, ArduPilot EKF3 default accelerometer noise
 EK3_GYRO_P_NSE = 0.015  # rad/s, ArduPilot EKF3 default gyro noise
 
 
+def _thin(t: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Indices of samples at least 1 / rate_hz apart (the first one kept), for sorted ``t``."""
+    if not rate_hz > 0 or len(t) == 0:
+        return np.arange(len(t))
+    slot = np.floor((t - t[0]) * rate_hz).astype(np.int64)
+    return np.flatnonzero(np.r_[True, np.diff(slot) > 0])
+
+
+def _block_means(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, dt_raw: float, rate_hz: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average consecutive IMU samples in blocks of ``round(1 / (rate_hz dt_raw))``; each block is
+    stamped with its first sample's time (the zero-order hold then covers the block's span)."""
+    if not rate_hz > 0 or not dt_raw > 0:
+        return t, gyro, accel
+    m = int(round(1.0 / (rate_hz * dt_raw)))
+    if m <= 1:
+        return t, gyro, accel
+    starts = np.arange(0, len(t), m)
+    counts = np.diff(np.append(starts, len(t)))[:, None]
+    return (
+        t[starts],
+        np.add.reduceat(gyro, starts, axis=0) / counts,
+        np.add.reduceat(accel, starts, axis=0) / counts,
+    )
+
+
 def imu_noise_from_log(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[float, float]:
     """Accelerometer and gyro noise of logged IMU samples, measured from the samples themselves.
 
@@ -295,6 +329,10 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
 
     imu_order = np.argsort(imu.t, kind="stable")
     i_t, i_gyro, i_acc = imu.t[imu_order], imu.gyro[imu_order], imu.accel[imu_order]
+    # noise of the raw samples, then (for fast IMUs) block means at about predict_rate_hz
+    acc_sigma, gyro_sigma = imu_noise_from_log(i_t, i_gyro, i_acc)
+    dt_raw = float(np.median(np.diff(i_t)))
+    i_t, i_gyro, i_acc = _block_means(i_t, i_gyro, i_acc, dt_raw, cfg.predict_rate_hz)
     t_start = max(float(g_t[0]), float(i_t[0]))
 
     mag = log.mag
@@ -351,13 +389,15 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
     ev_k = [np.zeros(len(i_t), np.int8), np.ones(len(g_t), np.int8)]
     ev_i = [np.arange(len(i_t)), np.arange(len(g_t))]
     if baro is not None and len(baro):
-        ev_t.append(baro.t)
-        ev_k.append(np.full(len(baro), 2, np.int8))
-        ev_i.append(np.arange(len(baro)))
+        keep = _thin(baro.t, cfg.max_aiding_rate_hz)
+        ev_t.append(baro.t[keep])
+        ev_k.append(np.full(len(keep), 2, np.int8))
+        ev_i.append(keep)
     if cfg.use_mag and len(mag):
-        ev_t.append(mag.t)
-        ev_k.append(np.full(len(mag), 3, np.int8))
-        ev_i.append(np.arange(len(mag)))
+        keep = _thin(mag.t, cfg.max_aiding_rate_hz)
+        ev_t.append(mag.t[keep])
+        ev_k.append(np.full(len(keep), 3, np.int8))
+        ev_i.append(keep)
     all_t = np.concatenate(ev_t)
     all_k = np.concatenate(ev_k)
     all_i = np.concatenate(ev_i)
@@ -371,7 +411,6 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
     gate2 = cfg.gate_sigma**2
     g_vec = np.array([0.0, 0.0, -GRAVITY])
     eye16 = np.eye(_N)
-    acc_sigma, gyro_sigma = imu_noise_from_log(i_t, i_gyro, i_acc)
     q_acc = (cfg.accel_noise if cfg.accel_noise is not None else acc_sigma) ** 2
     q_gyro = (cfg.gyro_noise if cfg.gyro_noise is not None else gyro_sigma) ** 2
     q_ab = cfg.accel_bias_noise**2
@@ -411,9 +450,10 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
         F[6:9, 12:15] = -np.eye(3) * dt
         P = F @ P @ F.T
         d2 = dt * dt
+        dn = dt_raw * dt  # white noise of per-sample sigma at the raw rate: variance sigma^2 dt_raw dt
         idx = np.arange(3)
-        P[3 + idx, 3 + idx] += q_acc * d2
-        P[6 + idx, 6 + idx] += q_gyro * d2
+        P[3 + idx, 3 + idx] += q_acc * dn
+        P[6 + idx, 6 + idx] += q_gyro * dn
         P[9 + idx, 9 + idx] += q_ab * d2
         P[12 + idx, 12 + idx] += q_gb * d2
         P[15, 15] += q_bb * dt

@@ -678,13 +678,15 @@ def write_image_folder(
     poses: FramePoses,
     *,
     loops: np.ndarray | None = None,
+    calibration: str | Path | None = None,
 ) -> Path:
     """Write the project's image-folder dataset for the frames that have a pose.
 
     Layout: ``images/`` (copies, named ``{index:06d}_{original name}`` so the natural name order is
     the capture order), ``right/`` when stereo, ``times.txt`` (frame times in seconds, the frames'
-    clock), ``poses.txt`` (TUM, camera-to-world), and ``loops.npy`` when ``loops`` is given
-    (indexed like the written frames).
+    clock), ``poses.txt`` (TUM, camera-to-world), ``loops.npy`` when ``loops`` is given
+    (indexed like the written frames), and ``calib.yaml`` copied from ``calibration`` (an
+    ORB-SLAM style settings file) when given.
 
     Returns:
         The dataset folder.
@@ -711,6 +713,11 @@ def write_image_folder(
     write_tum(out / "poses.txt", poses.frame_times[keep], poses.positions[keep], poses.quaternions[keep])
     if loops is not None:
         np.save(out / "loops.npy", loops)
+    if calibration is not None:
+        calib = Path(calibration)
+        if not calib.is_file():
+            raise DatasetError(f"{calib}: calibration file not found")
+        shutil.copy2(calib, out / "calib.yaml")
     return out
 
 
