@@ -77,7 +77,10 @@ class SyntheticTownConfig:
         if self.route_blocks is not None:
             rb = tuple(self.route_blocks)
             if len(rb) != 2 or min(rb) < 1 or max(rb) > 20:
-                raise ConfigError(f"SyntheticTownConfig.route_blocks: expected two integers in [1, 20], got {self.route_blocks!r}")
+                raise ConfigError(
+                    "SyntheticTownConfig.route_blocks: expected two integers in [1, 20], "
+                    f"got {self.route_blocks!r}"
+                )
 
     def route_size(self) -> tuple[int, int]:
         """Route rectangle in blocks: as set, or the one whose drive length best fits frames * step."""

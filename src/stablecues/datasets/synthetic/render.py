@@ -63,7 +63,15 @@ class View:
     levels: np.ndarray
 
 
-def cull(R: np.ndarray, C: np.ndarray, centre: np.ndarray, radius: np.ndarray, cam: Intrinsics, far: float, margin: float = 0.0) -> np.ndarray:
+def cull(
+    R: np.ndarray,
+    C: np.ndarray,
+    centre: np.ndarray,
+    radius: np.ndarray,
+    cam: Intrinsics,
+    far: float,
+    margin: float = 0.0,
+) -> np.ndarray:
     """Indices of the bounding spheres (centre (M, 3), radius (M,)) that may be in view."""
     d = centre - C
     cz = d @ R[:, 2]
@@ -77,6 +85,12 @@ def cull(R: np.ndarray, C: np.ndarray, centre: np.ndarray, radius: np.ndarray, c
     dist = np.sqrt((d * d).sum(axis=1))
     keep = (cz > -r) & (dist - r < far) & (np.abs(cx) <= cz * tx + r * sx) & (np.abs(cy) <= cz * ty + r * sy)
     return np.nonzero(keep)[0]
+
+
+def _scaled(img: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """A uint8 BGR or BGRA image with its colour channels multiplied by ``gain`` (3,), saturating."""
+    scalar = (float(gain[0]), float(gain[1]), float(gain[2]), 1.0)
+    return cv2.multiply(img, scalar)  # type: ignore[call-overload]
 
 
 def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
@@ -119,10 +133,13 @@ class Renderer:
         self._sky_az = -np.arctan(xn)  # radians, added to the heading
         self._sky_el = np.arctan2(-yn[:, None], np.sqrt(1.0 + xn[None, :] ** 2))
         self.sky_el_max = math.radians(40.0)
+        self._label_planes = [np.full((H, W), k, np.uint8) for k in range(12)]
 
     # ------------------------------------------------------------------ geometry per quad
 
-    def _prepare(self, q: QuadSet, R: np.ndarray, C: np.ndarray, normals: np.ndarray) -> dict[str, np.ndarray]:
+    def _prepare(
+        self, q: QuadSet, R: np.ndarray, C: np.ndarray, normals: np.ndarray
+    ) -> dict[str, np.ndarray]:
         oc = (q.origin - C) @ R
         uc = q.u @ R
         vc = q.v @ R
@@ -161,24 +178,37 @@ class Renderer:
             if len(cp) < 3:
                 ok[k] = False
                 continue
-            pp = np.stack([cam.fx * cp[:, 0] / cp[:, 2] + cam.cx, cam.fy * cp[:, 1] / cp[:, 2] + cam.cy], axis=1)
+            pp = np.stack(
+                [cam.fx * cp[:, 0] / cp[:, 2] + cam.cx, cam.fy * cp[:, 1] / cp[:, 2] + cam.cy], axis=1
+            )
             clipped[k] = pp
             lo[k] = pp.min(axis=0)
             hi[k] = pp.max(axis=0)
             zmin[k] = cp[:, 2].min()
         with np.errstate(invalid="ignore"):
             box = np.empty((len(pc), 4), np.int64)
-            box[:, 0] = np.clip(np.floor(np.nan_to_num(lo[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.width)
-            box[:, 1] = np.clip(np.floor(np.nan_to_num(lo[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.height)
-            box[:, 2] = np.clip(np.ceil(np.nan_to_num(hi[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.width)
-            box[:, 3] = np.clip(np.ceil(np.nan_to_num(hi[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.height)
+            box[:, 0] = np.clip(
+                np.floor(np.nan_to_num(lo[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.width
+            )
+            box[:, 1] = np.clip(
+                np.floor(np.nan_to_num(lo[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)), 0, cam.height
+            )
+            box[:, 2] = np.clip(
+                np.ceil(np.nan_to_num(hi[:, 0], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.width
+            )
+            box[:, 3] = np.clip(
+                np.ceil(np.nan_to_num(hi[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.height
+            )
         ok &= (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
         return {"ok": ok, "box": box, "zmin": zmin, "poly": poly, "clipped": clipped}
 
     def _inv_depth(self, abc: np.ndarray, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         """Depth (float32) over a box of the plane with inverse-depth coefficients ``abc``."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return 1.0 / (np.float32(abc[0]) * self.gx[y0:y1, x0:x1] + (np.float32(abc[1]) * self.gy[y0:y1, x0:x1] + np.float32(abc[2])))
+            return 1.0 / (
+                np.float32(abc[0]) * self.gx[y0:y1, x0:x1]
+                + (np.float32(abc[1]) * self.gy[y0:y1, x0:x1] + np.float32(abc[2]))
+            )
 
     # ------------------------------------------------------------------ main entry
 
@@ -204,7 +234,7 @@ class Renderer:
             quads: candidate quads (already culled roughly).
             normals: (M, 3) their unit front normals.
             light: the lap's lighting (shading gains and the sky).
-            decals: cast shadows, or None.
+            decals: cast shadows that may be in view (culled by the caller), or None.
             labels: also produce the label and visibility-id images.
             levels: (M,) mip levels to use (from the other view of a stereo pair), -1 = choose.
             noise: standard deviation of added sensor noise, grey levels (0: none).
@@ -223,50 +253,69 @@ class Renderer:
             facing = g["d"] < 0.0  # camera on the front side of the plane
             scr = self._screen_all(g["pc"], quads.two_sided | facing)
             ok, box, zmin, poly, clipped = scr["ok"], scr["box"], scr["zmin"], scr["poly"], scr["clipped"]
-            assert isinstance(clipped, dict) and isinstance(box, np.ndarray) and isinstance(zmin, np.ndarray) and isinstance(poly, np.ndarray) and isinstance(ok, np.ndarray)
+            assert (
+                isinstance(clipped, dict)
+                and isinstance(box, np.ndarray)
+                and isinstance(zmin, np.ndarray)
+                and isinstance(poly, np.ndarray)
+                and isinstance(ok, np.ndarray)
+            )
             eff_n = np.where(facing[:, None], normals, -normals)
             gains = light.gains(eff_n, quads.lit)
             texel = np.linalg.norm(quads.u, axis=1)
             with np.errstate(divide="ignore"):
                 auto = np.floor(np.log2(np.maximum(np.maximum(zmin, self.near) / cam.fx / texel, 1e-9)) + 0.3)
             lv = np.where(lv < 0, np.clip(auto, 0, 6), lv).astype(np.int8)
-            ids = np.where((quads.vis >= 0) & np.isin(quads.label, LANDMARK_CLASSES), quads.vis + 1, 0)
+            ids = np.where(
+                (quads.vis >= 0) & np.isin(quads.label, LANDMARK_CLASSES), quads.vis + 1, 0
+            ).astype(np.int32)
             order = np.nonzero(ok)[0]
             order = order[np.argsort(zmin[order], kind="stable")]
-            Hs = g["H"]
+            # texel -> bounding-box pixel homographies at the chosen level, all at once
+            Hs = g["H"].copy()
+            scale = np.ldexp(1.0, lv.astype(np.int64))
+            Hs[:, :, 0] *= scale[:, None]
+            Hs[:, :, 1] *= scale[:, None]
+            Hs[:, 0, :] -= box[:, :1] * Hs[:, 2, :]
+            Hs[:, 1, :] -= box[:, 1:2] * Hs[:, 2, :]
+            with np.errstate(invalid="ignore"):
+                pts16 = np.round((poly - box[:, None, :2]) * 16.0).astype(np.int32)
             abc = g["abc"]
             for qi in order.tolist():
                 x0, y0, x1, y1 = box[qi].tolist()
                 zs = zbuf[y0:y1, x0:x1]
-                zq = float(zmin[qi])
-                if zs.max() < zq:
+                if zs.max() < zmin[qi]:
                     continue  # hidden behind what is already drawn
                 pyramid = self.bank.levels(int(quads.tex[qi]))
-                level = min(int(lv[qi]), len(pyramid) - 1)
-                lv[qi] = level
-                scale = float(1 << level)
-                Hm = Hs[qi].copy()
-                Hm[:, :2] *= scale
-                Hm[0] -= x0 * Hm[2]
-                Hm[1] -= y0 * Hm[2]
+                Hm = Hs[qi]
+                if lv[qi] >= len(pyramid):  # a small texture has fewer levels
+                    lv[qi] = len(pyramid) - 1
+                    Hm = g["H"][qi].copy()
+                    Hm[:, :2] *= float(1 << int(lv[qi]))
+                    Hm[0] -= x0 * Hm[2]
+                    Hm[1] -= y0 * Hm[2]
                 bw, bh = x1 - x0, y1 - y0
-                warped = cv2.warpPerspective(pyramid[level], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                warped = cv2.warpPerspective(
+                    pyramid[lv[qi]], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                )
                 mask = np.zeros((bh, bw), np.uint8)
                 pp = clipped.get(qi)
-                pts = np.round(((poly[qi] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32)
-                cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=4)
+                pts = pts16[qi] if pp is None else np.round((pp - (x0, y0)) * 16.0).astype(np.int32)
+                cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
                 z = self._inv_depth(abc[qi], y0, y1, x0, x1)
-                m = mask.view(bool)
-                m &= z < zs
-                if warped.shape[2] == 4:
-                    m &= warped[:, :, 3] > 127
+                cv2.bitwise_and(mask, cv2.compare(z, zs, cv2.CMP_LT), dst=mask)
                 gq = gains[qi]
-                col = cv2.multiply(warped, (float(gq[0]), float(gq[1]), float(gq[2]), 1.0))
-                np.copyto(zs, z, where=m)
-                np.copyto(img[y0:y1, x0:x1], col[:, :, :3] if col.shape[2] == 4 else col, where=m[:, :, None])
+                if warped.shape[2] == 4:
+                    opaque = cv2.threshold(cv2.extractChannel(warped, 3), 127, 255, cv2.THRESH_BINARY)[1]
+                    cv2.bitwise_and(mask, opaque, dst=mask)
+                    col = cv2.cvtColor(_scaled(warped, gq), cv2.COLOR_BGRA2BGR)
+                else:
+                    col = _scaled(warped, gq)
+                cv2.copyTo(z, mask, zs)
+                cv2.copyTo(col, mask, img[y0:y1, x0:x1])
                 if lab is not None and inst is not None:
-                    np.copyto(lab[y0:y1, x0:x1], quads.label[qi], where=m)
-                    np.copyto(inst[y0:y1, x0:x1], ids[qi], where=m)
+                    cv2.copyTo(self._label_planes[quads.label[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
+                    cv2.copyTo(np.full((bh, bw), ids[qi], np.int32), mask, inst[y0:y1, x0:x1])
         if decals is not None and len(decals.quads):
             self._shadows(img, zbuf, R, C, decals)
         self._sky(img, zbuf, R, light)
@@ -279,45 +328,61 @@ class Renderer:
 
     # ------------------------------------------------------------------ shadows and sky
 
-    def _shadows(self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, C: np.ndarray, decals: Decals) -> None:
+    def _shadows(
+        self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, C: np.ndarray, decals: Decals
+    ) -> None:
         cam = self.cam
         H, W = cam.height, cam.width
-        idx = cull(R, C, decals.centre, decals.radius, cam, min(self.far, 120.0))
-        if not len(idx):
-            return
-        sub = decals.quads.subset(idx)
-        g = self._prepare(sub, R, C, decals.normal[idx])
+        sub = decals.quads
+        g = self._prepare(sub, R, C, decals.normal)
         scr = self._screen_all(g["pc"], g["d"] < 0.0)  # the camera must be on the lit side
         ok, box, poly, clipped = scr["ok"], scr["box"], scr["poly"], scr["clipped"]
-        assert isinstance(clipped, dict) and isinstance(box, np.ndarray) and isinstance(poly, np.ndarray) and isinstance(ok, np.ndarray)
-        done = np.zeros((H, W), bool)
+        assert (
+            isinstance(clipped, dict)
+            and isinstance(box, np.ndarray)
+            and isinstance(poly, np.ndarray)
+            and isinstance(ok, np.ndarray)
+        )
+        done = np.zeros((H, W), np.uint8)
         tol_rel, tol_abs = np.float32(2e-4), np.float32(2e-3)
         for k in np.nonzero(ok)[0].tolist():
             x0, y0, x1, y1 = box[k].tolist()
             bw, bh = x1 - x0, y1 - y0
             mask = np.zeros((bh, bw), np.uint8)
             pp = clipped.get(k)
-            cv2.fillConvexPoly(mask, np.round(((poly[k] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+            cv2.fillConvexPoly(
+                mask,
+                np.round(((poly[k] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32),
+                255,
+                lineType=cv2.LINE_8,
+                shift=4,
+            )
             z = self._inv_depth(g["abc"][k], y0, y1, x0, x1)
             zs = zbuf[y0:y1, x0:x1]
-            m = mask.view(bool)
-            m &= np.abs(zs - z) <= tol_rel * z + tol_abs
-            m &= ~done[y0:y1, x0:x1]
-            if not m.any():
+            on = cv2.compare(
+                cv2.absdiff(zs, z), cv2.scaleAdd(z, float(tol_rel), np.full_like(z, tol_abs)), cv2.CMP_LE
+            )
+            cv2.bitwise_and(mask, on, dst=mask)
+            cv2.bitwise_and(mask, cv2.bitwise_not(done[y0:y1, x0:x1]), dst=mask)
+            if not cv2.countNonZero(mask):
                 continue
-            if decals.alpha[idx[k]]:
+            if decals.alpha[k]:
                 tex = self.bank.levels(int(sub.tex[k]))[0]
                 Hm = g["H"][k].copy()
                 Hm[0] -= x0 * Hm[2]
                 Hm[1] -= y0 * Hm[2]
-                alpha = cv2.warpPerspective(np.ascontiguousarray(tex[:, :, 3]), Hm, (bw, bh), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-                m &= alpha > 127
-                if not m.any():
-                    continue
-            gq = decals.gain[idx[k]]
+                alpha = cv2.warpPerspective(
+                    cv2.extractChannel(tex, 3),
+                    Hm,
+                    (bw, bh),
+                    flags=cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT,
+                )
+                cv2.bitwise_and(mask, cv2.threshold(alpha, 127, 255, cv2.THRESH_BINARY)[1], dst=mask)
+            gq = decals.gain[k]
             sl = img[y0:y1, x0:x1]
-            np.copyto(sl, cv2.multiply(sl, (float(gq[0]), float(gq[1]), float(gq[2]), 0.0)), where=m[:, :, None])
-            done[y0:y1, x0:x1] |= m
+            cv2.copyTo(_scaled(sl, gq), mask, sl)
+            cv2.bitwise_or(done[y0:y1, x0:x1], mask, dst=done[y0:y1, x0:x1])
 
     def _sky(self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, light: Lighting) -> None:
         empty = ~np.isfinite(zbuf)
@@ -330,5 +395,11 @@ class Renderer:
         heading = math.atan2(R[1, 2], R[0, 2])
         mx = np.mod((heading + self._sky_az) * (pw / (2 * math.pi)), pw).astype(np.float32)
         my = np.clip(self._sky_el[:hs] / self.sky_el_max * (ph - 1), 0, ph - 1).astype(np.float32)
-        sky = cv2.remap(pano, np.broadcast_to(mx[None, :], (hs, len(mx))).astype(np.float32), my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        sky = cv2.remap(
+            pano,
+            np.broadcast_to(mx[None, :], (hs, len(mx))).astype(np.float32),
+            my,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )
         np.copyto(img[:hs], sky, where=empty[:hs, :, None])

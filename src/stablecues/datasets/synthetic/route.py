@@ -78,7 +78,9 @@ def plan_laps(n_laps: int, rect: tuple[int, int, int, int], seed: int) -> list[L
             p = np.array(nodes[detour])
             q = np.array(nodes[(detour + 1) % n_edges])
             d = q - p
-            out = np.array([-d[1], d[0]]) if clockwise else np.array([d[1], -d[0]])  # left of travel if clockwise
+            out = (
+                np.array([-d[1], d[0]]) if clockwise else np.array([d[1], -d[0]])
+            )  # left of travel if clockwise
             nodes = nodes[: detour + 1] + [tuple(p + out), tuple(q + out)] + nodes[detour + 1 :]
         hour = BASE_HOURS[k % len(BASE_HOURS)] + float(rng.uniform(-0.4, 0.4))
         laps.append(

@@ -58,7 +58,9 @@ class TextureBank:
     """
 
     def __init__(self, budget_bytes: int = 512 * 2**20) -> None:
-        self._specs: list[tuple[Callable[..., np.ndarray], tuple[Any, ...], dict[str, Any], tuple[int, ...]]] = []
+        self._specs: list[
+            tuple[Callable[..., np.ndarray], tuple[Any, ...], dict[str, Any], tuple[int, ...]]
+        ] = []
         self._cache: OrderedDict[int, list[np.ndarray]] = OrderedDict()
         self._bytes = 0
         self.budget = budget_bytes
@@ -67,7 +69,9 @@ class TextureBank:
     def __len__(self) -> int:
         return len(self._specs)
 
-    def register(self, fn: Callable[..., np.ndarray], *args: Any, seed: tuple[int, ...], **kwargs: Any) -> int:
+    def register(
+        self, fn: Callable[..., np.ndarray], *args: Any, seed: tuple[int, ...], **kwargs: Any
+    ) -> int:
         """Register a texture; returns its id. ``fn(rng, *args, **kwargs)`` makes it."""
         self._specs.append((fn, args, kwargs, seed))
         return len(self._specs) - 1
@@ -133,7 +137,20 @@ class QuadSet:
     def empty() -> QuadSet:
         z3 = np.zeros((0, 3))
         i32 = np.zeros(0, np.int32)
-        return QuadSet(z3, z3, z3, np.zeros((0, 4)), i32, np.zeros(0, np.uint8), np.zeros(0, bool), np.zeros(0, np.uint8), i32, i32, np.zeros(0, np.int8), i32)
+        return QuadSet(
+            z3,
+            z3,
+            z3,
+            np.zeros((0, 4)),
+            i32,
+            np.zeros(0, np.uint8),
+            np.zeros(0, bool),
+            np.zeros(0, np.uint8),
+            i32,
+            i32,
+            np.zeros(0, np.int8),
+            i32,
+        )
 
     def subset(self, idx: np.ndarray) -> QuadSet:
         return QuadSet(*(getattr(self, f)[idx] for f in _FIELDS))
@@ -152,7 +169,9 @@ class QuadSet:
         r = self.rect
         tx = np.stack([r[:, 0], r[:, 2], r[:, 2], r[:, 0]], axis=1)
         ty = np.stack([r[:, 1], r[:, 1], r[:, 3], r[:, 3]], axis=1)
-        return self.origin[:, None, :] + tx[..., None] * self.u[:, None, :] + ty[..., None] * self.v[:, None, :]
+        return (
+            self.origin[:, None, :] + tx[..., None] * self.u[:, None, :] + ty[..., None] * self.v[:, None, :]
+        )
 
     def normals(self) -> np.ndarray:
         """(M, 3) unit front normals ``-(u x v) / |u x v|``."""
@@ -258,7 +277,18 @@ def vertical_quad(
     b.add(tl, u_dir, -UP, width_m, z1 - z0, tex, ppm, label, **kwargs)
 
 
-def ground_quad(b: QuadBuilder, start: np.ndarray, u_dir: np.ndarray, length_m: float, width_m: float, tex: int, ppm: float, label: int, z: float = 0.0, **kwargs: Any) -> None:
+def ground_quad(
+    b: QuadBuilder,
+    start: np.ndarray,
+    u_dir: np.ndarray,
+    length_m: float,
+    width_m: float,
+    tex: int,
+    ppm: float,
+    label: int,
+    z: float = 0.0,
+    **kwargs: Any,
+) -> None:
     """A ground rectangle seen from above: ``length_m`` along ``u_dir``, ``width_m`` to its right."""
     tl = np.array([start[0], start[1], z])
     b.add(tl, u_dir, right_of(u_dir), length_m, width_m, tex, ppm, label, **kwargs)
@@ -321,7 +351,9 @@ def make_lighting(hour: float, overcast: bool, sky_tex: int) -> Lighting:
     return Lighting(hour, sun, sun_bgr, ambient, exposure, overcast, sky_tex)
 
 
-def sky_colours(hour: float, overcast: bool) -> tuple[tuple[float, float, float], tuple[float, float, float], float, tuple[float, float, float]]:
+def sky_colours(
+    hour: float, overcast: bool
+) -> tuple[tuple[float, float, float], tuple[float, float, float], float, tuple[float, float, float]]:
     """(horizon BGR, zenith BGR, cloud cover, cloud BGR) for a time of day."""
     elev = max(4.0, 60.0 * math.sin(math.pi * (hour - 6.0) / 13.0))
     warm = float(np.clip(1.0 - elev / 35.0, 0.0, 1.0))

@@ -17,16 +17,28 @@ from ...errors import DatasetError, InputError, check_array
 from . import textures as tx
 from .config import SyntheticTownConfig
 from .render import Intrinsics, Renderer, View, cull
-from .route import Lap, Path as LapPath, lap_lanes, lap_path, plan_laps
-from .scene import LOD_ALWAYS, LOD_PIECE, LOD_WHOLE, CAMVID_CLASSES, Lighting, QuadSet, TextureBank, make_lighting, sky_colours
+from .route import Lap, lap_lanes, lap_path, plan_laps
+from .route import Path as LapPath
+from .scene import (
+    CAMVID_CLASSES,
+    LANDMARK_CLASSES,
+    LOD_ALWAYS,
+    LOD_PIECE,
+    LOD_WHOLE,
+    Lighting,
+    QuadSet,
+    TextureBank,
+    make_lighting,
+    sky_colours,
+)
 from .town import K_LAP, Decals, Movers, Town, grid_size_for
 from .truth import LoopTruthConfig, Visibility, loop_truth
 
 logger = logging.getLogger(__name__)
 
 SKY_SIZE = (2048, 320)  # panorama width (360 degrees) and height (40 degrees)
-VIS_SCALE = 4  # the visibility pass for the ground truth renders at 1/VIS_SCALE of the size
 LOD_NEAR = 30.0  # metres: long quads nearer than this are drawn in pieces
+SHADOW_FAR = 90.0  # metres: cast shadows beyond this are not drawn
 
 
 @dataclass
@@ -121,11 +133,19 @@ class SyntheticTown:
         self.lights: list[Lighting] = []
         for lap in self.laps:
             horizon, zenith, cloud, cloud_c = sky_colours(lap.hour, lap.overcast)
-            sky = self.bank.register(tx.sky_panorama, SKY_SIZE[0], SKY_SIZE[1], horizon, zenith, cloud, cloud_c, seed=(config.seed, K_LAP, lap.index, 99999))
+            sky = self.bank.register(
+                tx.sky_panorama,
+                SKY_SIZE[0],
+                SKY_SIZE[1],
+                horizon,
+                zenith,
+                cloud,
+                cloud_c,
+                seed=(config.seed, K_LAP, lap.index, 99999),
+            )
             self.lights.append(make_lighting(lap.hour, lap.overcast, sky))
         self._movers: dict[int, Movers] = {}
         self._decals: dict[int, Decals] = {}
-        self._vis_renderer: Renderer | None = None
 
     def __len__(self) -> int:
         return self.config.frames
@@ -144,7 +164,7 @@ class SyntheticTown:
         return "\n".join(
             [
                 "%YAML:1.0",
-                f"# stablecues synthetic town: seed {cfg.seed}, {cfg.frames} frames, {cfg.loops} revisit laps",
+                f"# stablecues synthetic town: seed {cfg.seed}, {cfg.frames} frames, {cfg.loops} revisits",
                 "# rectified stereo pair without distortion; right camera = left + baseline along x",
                 'Camera.type: "PinHole"',
                 f"Camera.fx: {c.fx:.9f}",
@@ -215,7 +235,12 @@ class SyntheticTown:
             d = pos - C
             flat = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
             keep = (flat > 3.0) & (flat < min(far, 120.0))
-            keep[keep] &= np.isin(np.arange(len(mv))[keep], cull(R, C, pos[keep] + np.array([0, 0, 1.0]), np.full(int(keep.sum()), 3.0), cam, far, margin))
+            keep[keep] &= np.isin(
+                np.arange(len(mv))[keep],
+                cull(
+                    R, C, pos[keep] + np.array([0, 0, 1.0]), np.full(int(keep.sum()), 3.0), cam, far, margin
+                ),
+            )
             dyn = mv.world_quads(t, keep)
             if len(dyn):
                 parts.append(dyn)
@@ -258,13 +283,30 @@ class SyntheticTown:
         cams = [C, C_right] if right else [C]
         quads, normals = self._gather(R, C, lap, t, cfg.baseline + 0.5, cfg.max_depth, self.intrinsics, cams)
         light, decals = self.lights[lap], self.decals(lap)
+        if len(decals):
+            di = cull(R, C, decals.centre, decals.radius, self.intrinsics, SHADOW_FAR, cfg.baseline + 0.5)
+            decals = decals.subset(di)
+            decals = decals.subset(np.nonzero(~self.town.occluded(decals.quads.corners(), cams))[0])
         noise = cfg.noise if noise_seed is not None else 0.0
         rng_l = np.random.default_rng([*noise_seed, 0]) if noise_seed is not None else None
-        left = self.renderer.render(R, C, quads, normals, light, decals, labels=labels, noise=noise, noise_rng=rng_l)
+        left = self.renderer.render(
+            R, C, quads, normals, light, decals, labels=labels, noise=noise, noise_rng=rng_l
+        )
         rv = None
         if right:
             rng_r = np.random.default_rng([*noise_seed, 1]) if noise_seed is not None else None
-            rv = self.renderer.render(R, C_right, quads, normals, light, decals, labels=False, levels=left.levels, noise=noise, noise_rng=rng_r)
+            rv = self.renderer.render(
+                R,
+                C_right,
+                quads,
+                normals,
+                light,
+                decals,
+                labels=False,
+                levels=left.levels,
+                noise=noise,
+                noise_rng=rng_r,
+            )
         return left, rv
 
     def frame(self, i: int, *, right: bool = True, depth: bool = True, labels: bool = True) -> SyntheticFrame:
@@ -272,7 +314,14 @@ class SyntheticTown:
         if not 0 <= i < len(self):
             raise InputError(f"frame index: expected 0..{len(self) - 1}, got {i}")
         lap = int(self.lap_of[i])
-        left, rv = self.render_pose(self.poses[i], lap=lap, t=float(self.lap_time[i]), right=right, labels=labels, noise_seed=(self.config.seed, 3, i))
+        left, rv = self.render_pose(
+            self.poses[i],
+            lap=lap,
+            t=float(self.lap_time[i]),
+            right=right,
+            labels=labels,
+            noise_seed=(self.config.seed, 3, i),
+        )
         return SyntheticFrame(
             index=i,
             timestamp=float(self.times[i]),
@@ -291,29 +340,44 @@ class SyntheticTown:
     # ------------------------------------------------------------------ ground truth
 
     def visibility(self, frames: range | None = None) -> Visibility:
-        """Which static landmark surfaces each frame sees (a small, noise-free, untextured-cost pass)."""
+        """Which static landmark surfaces each frame sees, and how large they appear.
+
+        Computed from the geometry, not by rendering: a landmark piece (building, tree, pole,
+        sign or fence quad, long ones in 4 m pieces) counts when it lies in the view frustum
+        within ``max_depth``, faces the camera, and is not hidden behind a block
+        (:meth:`Town.occluded`); its weight is its projected area in pixels (corners clamped
+        to the image). Nearer objects of the same street side may still hide parts of it.
+        """
         cfg = self.config
-        if self._vis_renderer is None:
-            w = max(16, cfg.width // VIS_SCALE)
-            h = max(16, cfg.height // VIS_SCALE)
-            self._vis_renderer = Renderer(Intrinsics.from_fov(w, h, cfg.fov_deg), self.bank, far=cfg.max_depth)
-        vr = self._vis_renderer
+        town = self.town
+        st = town.static
+        cand = np.nonzero(np.isin(st.label, LANDMARK_CLASSES) & (st.lod != LOD_WHOLE))[0]
+        corners_all = st.corners()[cand]
+        normals = town.static_normal[cand]
+        two = st.two_sided[cand]
+        cam = self.intrinsics
         frames = frames if frames is not None else range(len(self))
         ids: list[np.ndarray] = []
-        counts: list[np.ndarray] = []
-        n_static = len(self.town.static)
+        weights: list[np.ndarray] = []
         for i in frames:
-            lap = int(self.lap_of[i])
             R = self.poses[i, :3, :3]
             C = self.poses[i, :3, 3]
-            quads, normals = self._gather(R, C, lap, float(self.lap_time[i]), 0.0, cfg.max_depth, vr.cam, lod_near=math.inf)
-            v = vr.render(R, C, quads, normals, self.lights[lap], None, labels=True)
-            assert v.inst is not None
-            bc = np.bincount(v.inst.ravel(), minlength=n_static + 1)[1:]
-            nz = np.nonzero(bc)[0]
-            ids.append(nz.astype(np.int32))
-            counts.append(bc[nz].astype(np.int64))
-        return Visibility(ids, counts, self.town.static_centre)
+            k = cull(R, C, town.static_centre[cand], town.static_radius[cand], cam, cfg.max_depth)
+            facing = two[k] | ((normals[k] * (C - corners_all[k, 0])).sum(axis=1) > 0)
+            k = k[facing]
+            pc = (corners_all[k] - C) @ R
+            front = pc[:, :, 2].min(axis=1) > 0.1
+            k, pc = k[front], pc[front]
+            k_keep = ~town.occluded(corners_all[k], [C])
+            k, pc = k[k_keep], pc[k_keep]
+            x = np.clip(cam.fx * pc[:, :, 0] / pc[:, :, 2] + cam.cx, -0.5, cam.width - 0.5)
+            y = np.clip(cam.fy * pc[:, :, 1] / pc[:, :, 2] + cam.cy, -0.5, cam.height - 0.5)
+            area = 0.5 * np.abs((x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1))
+            pos = area > 0.5
+            order = np.argsort(k[pos])
+            ids.append(cand[k[pos]][order].astype(np.int32))
+            weights.append(area[pos][order])
+        return Visibility(ids, weights, town.static_centre)
 
     def ground_truth(self, config: LoopTruthConfig = LoopTruthConfig()) -> np.ndarray:  # noqa: B008
         """The (N, N) bool lower-triangular loop matrix (see :mod:`.truth` for the rule)."""
@@ -373,7 +437,12 @@ def write_sequence(
         raise DatasetError(f"{out}: already holds images/; choose an empty folder or overwrite")
     t_start = time.perf_counter()
     seq = SyntheticTown(config)
-    subdirs = ["images"] + (["right"] if right else []) + (["depth"] if depth else []) + (["labels"] if labels else [])
+    subdirs = (
+        ["images"]
+        + (["right"] if right else [])
+        + (["depth"] if depth else [])
+        + (["labels"] if labels else [])
+    )
     for sub in subdirs:
         (out / sub).mkdir(parents=True, exist_ok=True)
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
@@ -396,7 +465,10 @@ def write_sequence(
     gt = seq.ground_truth(truth)
     np.save(out / "loops.npy", gt)
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in seq.times))
-    (out / "poses.txt").write_text("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "".join(_tum_line(float(t), p) + "\n" for t, p in zip(seq.times, seq.poses, strict=True)))
+    (out / "poses.txt").write_text(
+        "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n"
+        + "".join(_tum_line(float(t), p) + "\n" for t, p in zip(seq.times, seq.poses, strict=True))
+    )
     (out / "calib.yaml").write_text(seq.calibration_yaml())
     meta = {
         "generator": "stablecues.datasets.synthetic",
@@ -404,7 +476,14 @@ def write_sequence(
         "truth": asdict(truth),
         "frames": len(seq),
         "laps": [
-            {"index": lap.index, "clockwise": lap.clockwise, "lane_offset_m": lap.offset, "hour": round(lap.hour, 3), "overcast": lap.overcast, "detour_edge": lap.detour}
+            {
+                "index": lap.index,
+                "clockwise": lap.clockwise,
+                "lane_offset_m": lap.offset,
+                "hour": round(lap.hour, 3),
+                "overcast": lap.overcast,
+                "detour_edge": lap.detour,
+            }
             for lap in seq.laps
         ],
         "lap_of_frame": seq.lap_of.tolist(),

@@ -139,7 +139,10 @@ def put_text_box(
 def _wall(rng: Rng, h: int, w: int, ppm: float, colour: tuple[int, int, int], material: str) -> np.ndarray:
     img = np.empty((h, w, 3), np.uint8)
     img[:] = colour
-    tone = value_noise(rng, h, w, cell=3.0 * ppm) * 10.0 + value_noise(rng, h, w, cell=0.3 * ppm, octaves=2) * 4.0
+    tone = (
+        value_noise(rng, h, w, cell=3.0 * ppm) * 10.0
+        + value_noise(rng, h, w, cell=0.3 * ppm, octaves=2) * 4.0
+    )
     if material in ("brick", "stone"):
         course = max(3, int(round((0.09 if material == "brick" else 0.32) * ppm)))
         length = max(6, int(round((0.25 if material == "brick" else 0.7) * ppm)))
@@ -224,10 +227,14 @@ def _window(
         cv2.line(img, (x0, cy), (x1, cy), frame, max(1, t // 2 + 1))
     if sill:
         cv2.rectangle(img, (x0 - t - 1, y1), (x1 + t, y1 + max(2, t + 1)), _shade(wall, 1.25), -1)
-        cv2.line(img, (x0 - t - 1, y1 + max(2, t + 1) + 1), (x1 + t, y1 + max(2, t + 1) + 1), _shade(wall, 0.55), 1)
+        cv2.line(
+            img, (x0 - t - 1, y1 + max(2, t + 1) + 1), (x1 + t, y1 + max(2, t + 1) + 1), _shade(wall, 0.55), 1
+        )
 
 
-def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool = True, side: bool = False) -> np.ndarray:
+def facade(
+    rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool = True, side: bool = False
+) -> np.ndarray:
     """A building facade, (H, W, 3) uint8 BGR with H = height_m * ppm rows, W = width_m * ppm columns.
 
     Args:
@@ -250,7 +257,11 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
     t = max(1, px(rng.uniform(0.05, 0.1)))
     mullion = int(rng.integers(0, 4))
     sill = bool(rng.random() < 0.8)
-    shutters = _col(rng, ((40, 90, 40), (50, 50, 120), (120, 80, 40), (60, 60, 60)), 10) if rng.random() < 0.2 else None
+    shutters = (
+        _col(rng, ((40, 90, 40), (50, 50, 120), (120, 80, 40), (60, 60, 60)), 10)
+        if rng.random() < 0.2
+        else None
+    )
     gf = rng.uniform(3.6, 4.6) if not side else rng.uniform(2.8, 3.2)
     fh = rng.uniform(2.9, 3.4)
     parapet = rng.uniform(0.6, 1.4)
@@ -263,7 +274,11 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
     n_cols = max(1, int((width_m - 1.0) / spacing))
     x_first = (width_m - (n_cols - 1) * spacing) / 2.0
     cornice = rng.random() < 0.5
-    balcony_floors = set(rng.choice(max(n_floors, 1), size=min(n_floors, int(rng.integers(0, 3))), replace=False).tolist()) if n_floors and rng.random() < 0.35 else set()
+    balcony_floors = (
+        set(rng.choice(max(n_floors, 1), size=min(n_floors, int(rng.integers(0, 3))), replace=False).tolist())
+        if n_floors and rng.random() < 0.35
+        else set()
+    )
 
     def row(z: float) -> int:  # metres above ground -> texture row
         return h - px(z)
@@ -315,7 +330,9 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
                 gx = rng.uniform(wx0 + 0.1, wx1 - 0.4)
                 gy = rng.uniform(0.45, gf - 1.6)
                 gw, gh = rng.uniform(0.15, 0.6), rng.uniform(0.2, 0.7)
-                cv2.rectangle(img, (px(gx), row(gy + gh)), (px(gx + gw), row(gy)), _col(rng, CLOTH_COLOURS, 30), -1)
+                cv2.rectangle(
+                    img, (px(gx), row(gy + gh)), (px(gx + gw), row(gy)), _col(rng, CLOTH_COLOURS, 30), -1
+                )
             cv2.rectangle(img, (px(wx0), ys0), (px(wx1), ys1), frame, t + 1)
             # door
             door = _col(rng, FRAME_COLOURS + ((40, 60, 100),), 10)
@@ -326,7 +343,9 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
             cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), sign_bg, -1)
             cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), _shade(sign_bg, 0.5), 1)
             font = _FONTS[int(rng.integers(len(_FONTS) - 1))]
-            put_text_box(img, random_word(rng, 3, 8), px(ux0) + 2, sy0 + 1, px(ux1) - 2, sy1 - 1, sign_fg, font)
+            put_text_box(
+                img, random_word(rng, 3, 8), px(ux0) + 2, sy0 + 1, px(ux1) - 2, sy1 - 1, sign_fg, font
+            )
             if rng.random() < 0.4:  # striped awning under the sign
                 a0, a1 = sy1 + 1, sy1 + px(0.5)
                 c1, c2 = _col(rng, CLOTH_COLOURS, 10), (235, 235, 235)
@@ -340,9 +359,20 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
         dcx = rng.uniform(1.5, max(1.6, width_m - 1.5))
         cv2.rectangle(img, (px(dcx - 0.55), row(2.4)), (px(dcx + 0.55), row(0.0)), door, -1)
         for pz in (0.4, 1.3):
-            cv2.rectangle(img, (px(dcx - 0.4), row(pz + 0.8)), (px(dcx + 0.4), row(pz)), _shade(door, 0.75), max(1, t))
+            cv2.rectangle(
+                img, (px(dcx - 0.4), row(pz + 0.8)), (px(dcx + 0.4), row(pz)), _shade(door, 0.75), max(1, t)
+            )
         cv2.rectangle(img, (px(dcx - 0.15), row(2.75)), (px(dcx + 0.15), row(2.55)), (230, 230, 230), -1)
-        put_text_box(img, str(int(rng.integers(1, 200))), px(dcx - 0.15), row(2.75), px(dcx + 0.15), row(2.55), (20, 20, 20), cv2.FONT_HERSHEY_SIMPLEX)
+        put_text_box(
+            img,
+            str(int(rng.integers(1, 200))),
+            px(dcx - 0.15),
+            row(2.75),
+            px(dcx + 0.15),
+            row(2.55),
+            (20, 20, 20),
+            cv2.FONT_HERSHEY_SIMPLEX,
+        )
         for c in range(n_cols):
             cx = x_first + c * spacing
             if abs(cx - dcx) < win_w / 2 + 0.9:
@@ -362,8 +392,12 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
             bg = _col(rng, CLOTH_COLOURS + ((240, 240, 240),), 20)
             cv2.rectangle(img, (px(pxx), row(pz + ph_)), (px(pxx + pw_), row(pz)), bg, -1)
             fg = (255, 255, 255) if sum(bg) < 380 else (10, 10, 10)
-            put_text_box(img, random_word(rng, 2, 5), px(pxx), row(pz + ph_), px(pxx + pw_), row(pz + ph_ / 2), fg)
-            cv2.circle(img, (px(pxx + pw_ / 2), row(pz + ph_ / 4)), max(2, px(0.12)), _col(rng, CAR_COLOURS, 20), -1)
+            put_text_box(
+                img, random_word(rng, 2, 5), px(pxx), row(pz + ph_), px(pxx + pw_), row(pz + ph_ / 2), fg
+            )
+            cv2.circle(
+                img, (px(pxx + pw_ / 2), row(pz + ph_ / 4)), max(2, px(0.12)), _col(rng, CAR_COLOURS, 20), -1
+            )
     # drainpipe
     if rng.random() < 0.6:
         dx = px(rng.choice([0.25, width_m - 0.25]))
@@ -389,7 +423,15 @@ def facade(rng: Rng, width_m: float, height_m: float, ppm: float, *, shops: bool
 # --------------------------------------------------------------------------------------- ground
 
 
-def road(rng: Rng, length_m: float, width_m: float, ppm: float, *, parking_m: float = 2.0, zebra: tuple[bool, bool] = (True, True)) -> np.ndarray:
+def road(
+    rng: Rng,
+    length_m: float,
+    width_m: float,
+    ppm: float,
+    *,
+    parking_m: float = 2.0,
+    zebra: tuple[bool, bool] = (True, True),
+) -> np.ndarray:
     """A street segment's asphalt, (H, W, 3) uint8: columns along the street, rows across it.
 
     Row 0 is the left kerb for a driver travelling towards increasing columns; the right half
@@ -462,17 +504,21 @@ def road(rng: Rng, length_m: float, width_m: float, ppm: float, *, parking_m: fl
     # painted lane text / arrows, readable for the driver of each half
     for half in (0, 1):
         if rng.random() < 0.6 and length_m > 16:
-            word = str(rng.choice(["BUS", "SLOW", "STOP", "KEEP", "TAXI", "30", "20", random_word(rng, 3, 4)]))
+            word = str(
+                rng.choice(["BUS", "SLOW", "STOP", "KEEP", "TAXI", "30", "20", random_word(rng, 3, 4)])
+            )
             tl = rng.uniform(4.0, max(4.5, length_m - 8.0))
             lane0 = px(parking_m) + 2 if half == 0 else mid + 3
             lane1 = mid - 3 if half == 0 else h - px(parking_m) - 2
             tw_px = px(2.4)
-            canvas = np.zeros((lane1 - lane0, tw_px, 3), np.uint8)  # text with its "up" along the travel direction
+            canvas = np.zeros(
+                (lane1 - lane0, tw_px, 3), np.uint8
+            )  # text with its "up" along the travel direction
             cv2.rectangle(canvas, (0, 0), (tw_px, lane1 - lane0), (0, 0, 0), -1)
             # draw upright, then rotate so the top points along the lane's travel direction
             up = np.zeros((tw_px, lane1 - lane0, 3), np.uint8)
             put_text_box(up, word, 0, 0, up.shape[1], up.shape[0], white, cv2.FONT_HERSHEY_SIMPLEX, 0.15)
-            rot = np.rot90(up, k=1 if half == 1 else -1)
+            rot = np.rot90(up, k=-1 if half == 1 else 1)
             x0 = px(tl)
             region = img[lane0:lane1, x0 : x0 + rot.shape[1]]
             rr = rot[: region.shape[0], : region.shape[1]]
@@ -487,7 +533,9 @@ def intersection(rng: Rng, size_m: float, ppm: float) -> np.ndarray:
     grey = rng.uniform(70, 100)
     img = np.empty((n, n, 3), np.uint8)
     img[:] = (grey, grey, grey)
-    img = _add_tone(img, value_noise(rng, n, n, cell=3.0 * ppm) * 8.0 + rng.normal(0, 7.0, (n, n)).astype(np.float32))
+    img = _add_tone(
+        img, value_noise(rng, n, n, cell=3.0 * ppm) * 8.0 + rng.normal(0, 7.0, (n, n)).astype(np.float32)
+    )
     if rng.random() < 0.3:  # yellow box junction
         step = int(1.5 * ppm)
         for k in range(-n, n, step):
@@ -498,7 +546,15 @@ def intersection(rng: Rng, size_m: float, ppm: float) -> np.ndarray:
     return img
 
 
-def sidewalk(rng: Rng, length_m: float, width_m: float, ppm: float, *, features: tuple[float, ...] = (), kerb_row_top: bool = False) -> np.ndarray:
+def sidewalk(
+    rng: Rng,
+    length_m: float,
+    width_m: float,
+    ppm: float,
+    *,
+    features: tuple[float, ...] = (),
+    kerb_row_top: bool = False,
+) -> np.ndarray:
     """Paving slabs along a block side, (H, W, 3) uint8; columns along the side, rows across.
 
     Args:
@@ -511,7 +567,9 @@ def sidewalk(rng: Rng, length_m: float, width_m: float, ppm: float, *, features:
     def px(m: float) -> int:
         return int(round(m * ppm))
 
-    base = _col(rng, ((150, 150, 150), (135, 145, 160), (110, 120, 150), (165, 165, 160), (120, 125, 125)), 10)
+    base = _col(
+        rng, ((150, 150, 150), (135, 145, 160), (110, 120, 150), (165, 165, 160), (120, 125, 125)), 10
+    )
     slab_w = rng.choice([0.3, 0.5, 0.6])
     slab_h = rng.choice([0.3, 0.5, 0.6])
     sw, sh = max(3, px(slab_w)), max(3, px(slab_h))
@@ -524,7 +582,11 @@ def sidewalk(rng: Rng, length_m: float, width_m: float, ppm: float, *, features:
     # a few odd, replaced slabs
     odd = rng.random(per.shape) < 0.03
     per[odd] += rng.choice([-35.0, 30.0], size=int(odd.sum())).astype(np.float32)
-    tone = per[rowi, coli] + value_noise(rng, h, w, cell=2.0 * ppm) * 7.0 + rng.normal(0, 4.0, (h, w)).astype(np.float32)
+    tone = (
+        per[rowi, coli]
+        + value_noise(rng, h, w, cell=2.0 * ppm) * 7.0
+        + rng.normal(0, 4.0, (h, w)).astype(np.float32)
+    )
     joint = ((ys % sh) == 0) | ((xx % sw) == 0)
     tone = np.where(joint, tone - 35.0, tone).astype(np.float32)
     img = np.empty((h, w, 3), np.uint8)
@@ -541,7 +603,9 @@ def sidewalk(rng: Rng, length_m: float, width_m: float, ppm: float, *, features:
     cv2.rectangle(img, (0, k0), (w, k1), kerb, -1)
     for x in range(0, w, px(1.0)):
         cv2.line(img, (x, k0), (x, k1), _shade(base, 0.6), 1)
-    cv2.line(img, (0, k0 if not kerb_row_top else k1), (w, k0 if not kerb_row_top else k1), _shade(base, 0.5), 1)
+    cv2.line(
+        img, (0, k0 if not kerb_row_top else k1), (w, k0 if not kerb_row_top else k1), _shade(base, 0.5), 1
+    )
     # tree pits (soil with a grate) where trees stand
     for f in features:
         cx = px(f)
@@ -565,7 +629,9 @@ def gravel(rng: Rng, width_m: float, height_m: float, ppm: float) -> np.ndarray:
     h = max(8, int(round(height_m * ppm)))
     img = np.empty((h, w, 3), np.uint8)
     img[:] = _col(rng, ((120, 140, 150), (100, 115, 125)), 8)
-    img = _add_tone(img, rng.normal(0, 14.0, (h, w)).astype(np.float32) + value_noise(rng, h, w, 2.0 * ppm) * 10)
+    img = _add_tone(
+        img, rng.normal(0, 14.0, (h, w)).astype(np.float32) + value_noise(rng, h, w, 2.0 * ppm) * 10
+    )
     for _ in range(int(w * h / 150)):
         c = (int(rng.integers(0, w)), int(rng.integers(0, h)))
         cv2.circle(img, c, int(rng.integers(1, 3)), (int(rng.integers(60, 200)),) * 3, -1)
@@ -581,9 +647,14 @@ def foliage(rng: Rng, width_m: float, height_m: float, ppm: float) -> np.ndarray
     h = max(8, int(round(height_m * ppm)))
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
     d = ((xs - w / 2) / (w / 2)) ** 2 + ((ys - h * 0.52) / (h * 0.5)) ** 2
-    edge = value_noise(rng, h, w, cell=0.8 * ppm) * 0.25 + value_noise(rng, h, w, cell=0.25 * ppm, octaves=1) * 0.12
+    edge = (
+        value_noise(rng, h, w, cell=0.8 * ppm) * 0.25
+        + value_noise(rng, h, w, cell=0.25 * ppm, octaves=1) * 0.12
+    )
     alpha = (d + edge) < 0.85
-    base = np.array(_col(rng, ((40, 110, 60), (30, 90, 50), (50, 120, 80), (30, 100, 90), (35, 80, 40)), 12), np.float32)
+    base = np.array(
+        _col(rng, ((40, 110, 60), (30, 90, 50), (50, 120, 80), (30, 100, 90), (35, 80, 40)), 12), np.float32
+    )
     light = value_noise(rng, h, w, cell=1.0 * ppm) * 18.0 + (1.0 - ys / h) * 25.0 - 10.0
     img = np.clip(base[None, None, :] + light[..., None], 0, 255).astype(np.uint8)
     # leaf clusters: many small light/dark blobs give FAST corners
@@ -608,7 +679,9 @@ def bark(rng: Rng, width_m: float, height_m: float, ppm: float) -> np.ndarray:
     w = max(4, int(round(width_m * ppm)))
     h = max(8, int(round(height_m * ppm)))
     base = np.array(_col(rng, ((50, 70, 90), (60, 75, 85), (70, 85, 95)), 8), np.float32)
-    streak = cv2.resize(rng.standard_normal((max(2, h // 12), w)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+    streak = cv2.resize(
+        rng.standard_normal((max(2, h // 12), w)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC
+    )
     tone = streak * 18.0 + rng.normal(0, 6.0, (h, w)).astype(np.float32)
     img = np.clip(base[None, None, :] + tone[..., None], 0, 255).astype(np.uint8)
     for _ in range(int(rng.integers(1, 4))):
@@ -631,7 +704,9 @@ def metal(rng: Rng, width_m: float, height_m: float, ppm: float) -> np.ndarray:
     img = np.empty((h, w, 3), np.uint8)
     img[:] = c
     xs = np.linspace(-1, 1, w, dtype=np.float32)
-    img = np.clip(img.astype(np.float32) * (1.0 - 0.4 * xs**2 + 0.15 * (xs < -0.3))[None, :, None], 0, 255).astype(np.uint8)
+    img = np.clip(
+        img.astype(np.float32) * (1.0 - 0.4 * xs**2 + 0.15 * (xs < -0.3))[None, :, None], 0, 255
+    ).astype(np.uint8)
     band = int(round(0.5 * ppm))
     img[h - band :] = _shade(c, 0.6)
     for _ in range(int(rng.integers(0, 3))):
@@ -664,16 +739,38 @@ def sign_plate(rng: Rng, size_m: float, ppm: float) -> np.ndarray:
     if kind == 0:  # speed limit
         cv2.circle(img, c, r, red, -1)
         cv2.circle(img, c, int(r * 0.78), white, -1)
-        put_text_box(img, str(int(rng.choice([20, 30, 40, 50, 60]))), c[0] - r // 2, c[1] - r // 2, c[0] + r // 2, c[1] + r // 2, black, cv2.FONT_HERSHEY_DUPLEX, 0.14)
+        put_text_box(
+            img,
+            str(int(rng.choice([20, 30, 40, 50, 60]))),
+            c[0] - r // 2,
+            c[1] - r // 2,
+            c[0] + r // 2,
+            c[1] + r // 2,
+            black,
+            cv2.FONT_HERSHEY_DUPLEX,
+            0.14,
+        )
     elif kind == 1:  # no entry
         cv2.circle(img, c, r, red, -1)
-        cv2.rectangle(img, (c[0] - int(r * 0.7), c[1] - r // 6), (c[0] + int(r * 0.7), c[1] + r // 6), white, -1)
+        cv2.rectangle(
+            img, (c[0] - int(r * 0.7), c[1] - r // 6), (c[0] + int(r * 0.7), c[1] + r // 6), white, -1
+        )
     elif kind == 2:  # warning triangle with a glyph
         pts = np.array([[c[0], 1], [n - 2, n - 4], [1, n - 4]], np.int32)
         cv2.fillConvexPoly(img, pts, red)
         inner = ((pts - c) * 0.7 + c + [0, n // 20]).astype(np.int32)
         cv2.fillConvexPoly(img, inner, white)
-        put_text_box(img, str(rng.choice(list("!?XYZ"))), c[0] - r // 3, c[1] - r // 6, c[0] + r // 3, c[1] + r // 2, black, cv2.FONT_HERSHEY_SIMPLEX, 0.2)
+        put_text_box(
+            img,
+            str(rng.choice(list("!?XYZ"))),
+            c[0] - r // 3,
+            c[1] - r // 6,
+            c[0] + r // 3,
+            c[1] + r // 2,
+            black,
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.2,
+        )
     elif kind == 3:  # parking
         cv2.rectangle(img, (1, 1), (n - 2, n - 2), blue, -1)
         cv2.rectangle(img, (3, 3), (n - 4, n - 4), white, 1)
@@ -742,7 +839,10 @@ def fence(rng: Rng, length_m: float, height_m: float, ppm: float) -> np.ndarray:
         gap = max(2, int(round(rng.uniform(0.04, 0.08) * ppm)))
         for x in range(0, w, pw + gap):
             top = int(round(rng.uniform(0.0, 0.05) * ppm))
-            pts = np.array([[x, top + pw], [x + pw // 2, top], [x + pw - 1, top + pw], [x + pw - 1, h - 1], [x, h - 1]], np.int32)
+            pts = np.array(
+                [[x, top + pw], [x + pw // 2, top], [x + pw - 1, top + pw], [x + pw - 1, h - 1], [x, h - 1]],
+                np.int32,
+            )
             cv2.fillPoly(img, [pts], (*_shade(wood, rng.uniform(0.85, 1.1)), 255))
             cv2.line(img, (x + pw - 1, top + pw), (x + pw - 1, h - 1), (*_shade(wood, 0.6), 255), 1)
         for yr in (0.3, 0.75):
@@ -770,7 +870,9 @@ def fence(rng: Rng, length_m: float, height_m: float, ppm: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------- vehicles and people
 
 
-def car_side(rng: Rng, length_m: float, height_m: float, ppm: float, colour: tuple[int, int, int], flip: bool) -> np.ndarray:
+def car_side(
+    rng: Rng, length_m: float, height_m: float, ppm: float, colour: tuple[int, int, int], flip: bool
+) -> np.ndarray:
     """A car's side profile, (H, W, 4) BGRA, front at column 0 (mirrored when ``flip``)."""
     w, h = max(16, int(round(length_m * ppm))), max(8, int(round(height_m * ppm)))
 
@@ -781,17 +883,29 @@ def car_side(rng: Rng, length_m: float, height_m: float, ppm: float, colour: tup
     body = (*colour, 255)
     belt = h - px(0.85)
     cab_front, cab_back = px(rng.uniform(1.1, 1.5)), w - px(rng.uniform(0.4, 0.9))
-    cabin = np.array([[cab_front, belt], [cab_front + px(0.55), 0], [cab_back - px(0.35), 0], [cab_back, belt]], np.int32)
+    cabin = np.array(
+        [[cab_front, belt], [cab_front + px(0.55), 0], [cab_back - px(0.35), 0], [cab_back, belt]], np.int32
+    )
     cv2.fillConvexPoly(img, cabin, body)
     cv2.rectangle(img, (0, belt), (w - 1, h - px(0.18)), body, -1)
-    glass = np.array([[cab_front + px(0.12), belt - 1], [cab_front + px(0.6), px(0.08)], [cab_back - px(0.4), px(0.08)], [cab_back - px(0.1), belt - 1]], np.int32)
+    glass = np.array(
+        [
+            [cab_front + px(0.12), belt - 1],
+            [cab_front + px(0.6), px(0.08)],
+            [cab_back - px(0.4), px(0.08)],
+            [cab_back - px(0.1), belt - 1],
+        ],
+        np.int32,
+    )
     cv2.fillConvexPoly(img, glass, (70, 55, 45, 255))
     pillar = (cab_front + cab_back) // 2
     cv2.line(img, (pillar, px(0.05)), (pillar, belt), body, max(2, px(0.08)))
     cv2.line(img, (pillar, belt + 2), (pillar, h - px(0.3)), (*_shade(colour, 0.5), 255), 1)
     cv2.line(img, (0, belt + px(0.1)), (w, belt + px(0.1)), (*_shade(colour, 0.7), 255), 1)
     for hx in (pillar - px(0.35), pillar + px(0.5)):
-        cv2.rectangle(img, (hx, belt + px(0.15)), (hx + px(0.2), belt + px(0.2)), (*_shade(colour, 0.5), 255), -1)
+        cv2.rectangle(
+            img, (hx, belt + px(0.15)), (hx + px(0.2), belt + px(0.2)), (*_shade(colour, 0.5), 255), -1
+        )
     r = px(0.33)
     for wx in (px(0.85), w - px(0.85)):
         cv2.circle(img, (wx, h - r - 1), r + 2, (*_shade(colour, 0.4), 255), -1)
@@ -799,13 +913,27 @@ def car_side(rng: Rng, length_m: float, height_m: float, ppm: float, colour: tup
         cv2.circle(img, (wx, h - r - 1), r // 2, (170, 170, 170, 255), -1)
         for a in range(0, 360, 72):
             t = np.deg2rad(a)
-            cv2.line(img, (wx, h - r - 1), (int(wx + np.cos(t) * r / 2), int(h - r - 1 + np.sin(t) * r / 2)), (90, 90, 90, 255), 1)
+            cv2.line(
+                img,
+                (wx, h - r - 1),
+                (int(wx + np.cos(t) * r / 2), int(h - r - 1 + np.sin(t) * r / 2)),
+                (90, 90, 90, 255),
+                1,
+            )
     cv2.rectangle(img, (0, belt + px(0.05)), (px(0.12), belt + px(0.25)), (200, 230, 240, 255), -1)
     cv2.rectangle(img, (w - px(0.1), belt + px(0.05)), (w - 1, belt + px(0.25)), (30, 30, 200, 255), -1)
     return np.ascontiguousarray(img[:, ::-1]) if flip else img
 
 
-def car_end(rng: Rng, width_m: float, height_m: float, ppm: float, colour: tuple[int, int, int], front: bool, plate: str) -> np.ndarray:
+def car_end(
+    rng: Rng,
+    width_m: float,
+    height_m: float,
+    ppm: float,
+    colour: tuple[int, int, int],
+    front: bool,
+    plate: str,
+) -> np.ndarray:
     """A car's front or back, (H, W, 4) BGRA."""
     w, h = max(12, int(round(width_m * ppm))), max(8, int(round(height_m * ppm)))
 
@@ -816,9 +944,28 @@ def car_end(rng: Rng, width_m: float, height_m: float, ppm: float, colour: tuple
     body = (*colour, 255)
     belt = h - px(0.85)
     inset = px(0.2)
-    cv2.fillConvexPoly(img, np.array([[inset, belt], [inset + px(0.15), 0], [w - 1 - inset - px(0.15), 0], [w - 1 - inset, belt]], np.int32), body)
+    cv2.fillConvexPoly(
+        img,
+        np.array(
+            [[inset, belt], [inset + px(0.15), 0], [w - 1 - inset - px(0.15), 0], [w - 1 - inset, belt]],
+            np.int32,
+        ),
+        body,
+    )
     cv2.rectangle(img, (0, belt), (w - 1, h - px(0.15)), body, -1)
-    cv2.fillConvexPoly(img, np.array([[inset + px(0.08), belt - 1], [inset + px(0.2), px(0.08)], [w - inset - px(0.2), px(0.08)], [w - inset - px(0.08), belt - 1]], np.int32), (70, 55, 45, 255))
+    cv2.fillConvexPoly(
+        img,
+        np.array(
+            [
+                [inset + px(0.08), belt - 1],
+                [inset + px(0.2), px(0.08)],
+                [w - inset - px(0.2), px(0.08)],
+                [w - inset - px(0.08), belt - 1],
+            ],
+            np.int32,
+        ),
+        (70, 55, 45, 255),
+    )
     lamp = (200, 235, 245, 255) if front else (30, 30, 190, 255)
     ly = belt + px(0.12)
     cv2.rectangle(img, (px(0.1), ly), (px(0.45), ly + px(0.15)), lamp, -1)
@@ -830,14 +977,18 @@ def car_end(rng: Rng, width_m: float, height_m: float, ppm: float, colour: tuple
     pw, ph = px(0.52), px(0.12)
     px0, py0 = (w - pw) // 2, h - px(0.45)
     cv2.rectangle(img, (px0, py0), (px0 + pw, py0 + ph), (235, 235, 235, 255), -1)
-    put_text_box(img, plate, px0 + 1, py0, px0 + pw - 1, py0 + ph, (20, 20, 20, 255), cv2.FONT_HERSHEY_SIMPLEX, 0.15)
+    put_text_box(
+        img, plate, px0 + 1, py0, px0 + pw - 1, py0 + ph, (20, 20, 20, 255), cv2.FONT_HERSHEY_SIMPLEX, 0.15
+    )
     cv2.rectangle(img, (0, h - px(0.15)), (w - 1, h - 1), (25, 25, 25, 255), -1)
     for wx in (px(0.1), w - px(0.35)):
         cv2.rectangle(img, (wx, h - px(0.3)), (wx + px(0.25), h - 1), (25, 25, 25, 255), -1)
     return img
 
 
-def car_roof(rng: Rng, length_m: float, width_m: float, ppm: float, colour: tuple[int, int, int]) -> np.ndarray:
+def car_roof(
+    rng: Rng, length_m: float, width_m: float, ppm: float, colour: tuple[int, int, int]
+) -> np.ndarray:
     """A car's roof seen from above, (H, W, 3) uint8: columns along the car, front at column 0."""
     w, h = max(8, int(round(length_m * ppm))), max(8, int(round(width_m * ppm)))
     img = np.empty((h, w, 3), np.uint8)
@@ -864,7 +1015,19 @@ def pedestrian(rng: Rng, height_m: float, ppm: float) -> np.ndarray:
     neck = 2 * head_r + 1
     torso_b = int(h * 0.55)
     sw = int(0.2 * ppm)
-    cv2.fillConvexPoly(img, np.array([[cx - sw, neck + 2], [cx + sw, neck + 2], [cx + int(sw * 0.8), torso_b], [cx - int(sw * 0.8), torso_b]], np.int32), shirt)
+    cv2.fillConvexPoly(
+        img,
+        np.array(
+            [
+                [cx - sw, neck + 2],
+                [cx + sw, neck + 2],
+                [cx + int(sw * 0.8), torso_b],
+                [cx - int(sw * 0.8), torso_b],
+            ],
+            np.int32,
+        ),
+        shirt,
+    )
     arm = max(2, int(0.06 * ppm))
     swing = int(rng.uniform(-0.08, 0.08) * ppm)
     cv2.line(img, (cx - sw, neck + 4), (cx - sw - 1 + swing, int(h * 0.52)), shirt, arm)
@@ -878,7 +1041,13 @@ def pedestrian(rng: Rng, height_m: float, ppm: float) -> np.ndarray:
     cv2.rectangle(img, (cx - leg - stride - 2, h - 4), (cx - stride, h - 1), (20, 20, 20, 255), -1)
     cv2.rectangle(img, (cx + stride, h - 4), (cx + leg + stride + 2, h - 1), (20, 20, 20, 255), -1)
     if rng.random() < 0.4:  # a bag
-        cv2.rectangle(img, (cx + sw - 2, int(h * 0.45)), (min(w - 1, cx + sw + int(0.1 * ppm)), int(h * 0.6)), (*_col(rng, CLOTH_COLOURS, 20), 255), -1)
+        cv2.rectangle(
+            img,
+            (cx + sw - 2, int(h * 0.45)),
+            (min(w - 1, cx + sw + int(0.1 * ppm)), int(h * 0.6)),
+            (*_col(rng, CLOTH_COLOURS, 20), 255),
+            -1,
+        )
     img[..., 3] = np.where(img[..., 3] > 0, 255, 0).astype(np.uint8)
     return img
 
@@ -893,15 +1062,15 @@ def bicyclist(rng: Rng, ppm: float) -> np.ndarray:
     wf, wb = (r + 2, wy), (w - r - 3, wy)
     for c in (wf, wb):
         cv2.circle(img, c, r, (25, 25, 25, 255), max(2, int(0.04 * ppm)))
-        for a in range(0, 180, 30):
-            t = np.deg2rad(a)
+        for deg in range(0, 180, 30):
+            t = np.deg2rad(deg)
             d = (int(np.cos(t) * r), int(np.sin(t) * r))
             cv2.line(img, (c[0] - d[0], c[1] - d[1]), (c[0] + d[0], c[1] + d[1]), (120, 120, 120, 255), 1)
     seat = (int(w * 0.62), int(h - 2.4 * r))
     bar = (int(w * 0.3), int(h - 2.6 * r))
     crank = (w // 2, wy)
-    for a, b in ((wf, bar), (bar, crank), (crank, wb), (wb, seat), (seat, crank), (bar, seat)):
-        cv2.line(img, a, b, frame_c, max(2, int(0.04 * ppm)))
+    for p0, p1 in ((wf, bar), (bar, crank), (crank, wb), (wb, seat), (seat, crank), (bar, seat)):
+        cv2.line(img, p0, p1, frame_c, max(2, int(0.04 * ppm)))
     shirt = (*_col(rng, CLOTH_COLOURS, 20), 255)
     skin = (*_col(rng, SKIN_COLOURS, 8), 255)
     hip = (seat[0], seat[1] - 4)

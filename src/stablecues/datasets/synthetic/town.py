@@ -56,7 +56,9 @@ PPM_CAR = 48.0
 PPM_PED = 64.0
 
 # seed-key kinds (first element after the user seed)
-K_LAYOUT, K_FACADE, K_SIDE, K_WALK, K_ROAD, K_CROSS, K_TREE, K_POLE, K_SIGN, K_FENCE, K_GAP, K_END, K_LAP = range(13)
+K_LAYOUT, K_FACADE, K_SIDE, K_WALK, K_ROAD, K_CROSS, K_TREE, K_POLE, K_SIGN, K_FENCE, K_GAP, K_END, K_LAP = (
+    range(13)
+)
 
 _DIRS = {  # outward normal of each block side; sides run counter-clockwise around the block
     "S": np.array([0.0, -1.0, 0.0]),
@@ -129,7 +131,20 @@ class Movers:
         def rot(a: np.ndarray) -> np.ndarray:
             return a[:, :1] * fwd + a[:, 1:2] * left + a[:, 2:3] * UP[None, :]
 
-        return QuadSet(pos + rot(q.origin), rot(q.u), rot(q.v), q.rect, q.tex, q.label, q.two_sided, q.lit, q.vis, q.obj, q.lod, q.parent)
+        return QuadSet(
+            pos + rot(q.origin),
+            rot(q.u),
+            rot(q.v),
+            q.rect,
+            q.tex,
+            q.label,
+            q.two_sided,
+            q.lit,
+            q.vis,
+            q.obj,
+            q.lod,
+            q.parent,
+        )
 
 
 @dataclass
@@ -151,6 +166,19 @@ class Decals:
     alpha: np.ndarray
     centre: np.ndarray
     radius: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.quads)
+
+    def subset(self, idx: np.ndarray) -> Decals:
+        return Decals(
+            self.quads.subset(idx),
+            self.normal[idx],
+            self.gain[idx],
+            self.alpha[idx],
+            self.centre[idx],
+            self.radius[idx],
+        )
 
     @staticmethod
     def empty() -> Decals:
@@ -183,7 +211,9 @@ class Town:
         self.sides: list[Side] = []
         self._occluders: list[tuple[float, float, float, float, float]] = []  # x0, y0, x1, y1, height
         self._wall_heights: list[float] = []
-        self._casters: list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray]] = []  # (top-left, u, width, height, n)
+        self._casters: list[
+            tuple[np.ndarray, np.ndarray, float, float, np.ndarray]
+        ] = []  # (top-left, u, width, height, n)
         self._prop_casters = QuadBuilder()  # trunks, canopies and poles, for their shadows
         b = QuadBuilder()
         self._build_blocks(b)
@@ -222,7 +252,12 @@ class Town:
         x1 = self.xs[i + 1] - (SETBACK if street["E"] else 0.0)
         y0 = self.ys[j] + (SETBACK if street["S"] else 0.0)
         y1 = self.ys[j + 1] - (SETBACK if street["N"] else 0.0)
-        corners = {"S": np.array([x0, y0, 0.0]), "E": np.array([x1, y0, 0.0]), "N": np.array([x1, y1, 0.0]), "W": np.array([x0, y1, 0.0])}
+        corners = {
+            "S": np.array([x0, y0, 0.0]),
+            "E": np.array([x1, y0, 0.0]),
+            "N": np.array([x1, y1, 0.0]),
+            "W": np.array([x0, y1, 0.0]),
+        }
         order = ["S", "E", "N", "W"]
         corner_h = rng.uniform(10.0, 24.0, 4)  # corner k is the start of side order[k]
         depth = min(10.0, (x1 - x0) / 2, (y1 - y0) / 2)
@@ -243,7 +278,9 @@ class Town:
             # sidewalk corner square where this side and the next both face streets
             nxt = order[(k + 1) % 4]
             if street[nxt]:
-                tex = self.bank.register(tx.sidewalk, SIDEWALK, SIDEWALK, PPM_WALK, seed=(self.seed, K_WALK, i, j, k, 1))
+                tex = self.bank.register(
+                    tx.sidewalk, SIDEWALK, SIDEWALK, PPM_WALK, seed=(self.seed, K_WALK, i, j, k, 1)
+                )
                 ground_quad(b, end, u, SIDEWALK, SIDEWALK, tex, PPM_WALK, PAVEMENT)
         if len(self.sides) > n_before:
             # the block as a solid box for occlusion culling: every sight line into it meets a
@@ -251,7 +288,16 @@ class Town:
             h_occ = min(self._wall_heights[walls_before:])
             self._occluders.append((x0, y0, x1, y1, h_occ))
 
-    def _build_side(self, b: QuadBuilder, side: Side, h_start: float, h_end: float, depth: float, key: tuple[int, int, int], rng: np.random.Generator) -> None:
+    def _build_side(
+        self,
+        b: QuadBuilder,
+        side: Side,
+        h_start: float,
+        h_end: float,
+        depth: float,
+        key: tuple[int, int, int],
+        rng: np.random.Generator,
+    ) -> None:
         i, j, k = key
         L = side.length
         # partition into buildings
@@ -286,7 +332,8 @@ class Town:
                 side.buildings.append((s, s + w, float(h)))
                 self._wall_heights.append(float(h))
             s += w
-        # side walls where neighbours differ in height (a gap counts as height 0, wall as deep as the courtyard)
+        # side walls where neighbours differ in height (a gap counts as height 0; walls
+        # beside a courtyard are as deep as it)
         for bi in range(nb - 1):
             ha = 0.0 if gap[bi] else heights[bi]
             hb = 0.0 if gap[bi + 1] else heights[bi + 1]
@@ -295,7 +342,9 @@ class Town:
             p = side.start + side.u * float(np.sum(widths[: bi + 1]))
             d = 12.0 if (gap[bi] or gap[bi + 1]) else depth
             lo, hi = min(ha, hb), max(ha, hb)
-            tex = self.bank.register(tx.facade, d, hi - lo, PPM_FACADE, side=True, seed=(self.seed, K_SIDE, i, j, k, bi))
+            tex = self.bank.register(
+                tx.facade, d, hi - lo, PPM_FACADE, side=True, seed=(self.seed, K_SIDE, i, j, k, bi)
+            )
             if ha > hb:  # wall of building bi, facing +u
                 vertical_quad(b, p, -side.n, d, lo, hi, tex, PPM_FACADE, BUILDING, chunk_m=CHUNK)
             else:  # wall of building bi+1, facing -u
@@ -320,7 +369,9 @@ class Town:
             pos = p0 + side.u * rng.uniform(1.5, max(1.6, w - 1.5)) - side.n * rng.uniform(4.0, 9.0)
             self._tree(b, pos, side.u, (*key, 10 + t), rng)
 
-    def _build_sidewalk(self, b: QuadBuilder, side: Side, key: tuple[int, int, int], rng: np.random.Generator) -> None:
+    def _build_sidewalk(
+        self, b: QuadBuilder, side: Side, key: tuple[int, int, int], rng: np.random.Generator
+    ) -> None:
         i, j, k = key
         L = side.length
         c = self.clutter
@@ -332,7 +383,9 @@ class Town:
             while s < L - 2.0:
                 trees.append(s)
                 s += spacing * float(rng.uniform(0.8, 1.2))
-        tex = self.bank.register(tx.sidewalk, L, SIDEWALK, PPM_WALK, features=tuple(trees), seed=(self.seed, K_WALK, i, j, k))
+        tex = self.bank.register(
+            tx.sidewalk, L, SIDEWALK, PPM_WALK, features=tuple(trees), seed=(self.seed, K_WALK, i, j, k)
+        )
         ground_quad(b, side.start, side.u, L, SIDEWALK, tex, PPM_WALK, PAVEMENT, chunk_m=CHUNK)
         for t, s in enumerate(trees):
             self._tree(b, side.start + side.u * s + side.n * kerb_off, side.u, (i, j, k, t), rng)
@@ -341,7 +394,9 @@ class Town:
             s = float(rng.uniform(3.0, 10.0))
             while s < L - 3.0:
                 if all(abs(s - t) > 2.0 for t in trees):
-                    self._lamp(b, side.start + side.u * s + side.n * (SIDEWALK - 0.5), side.n, (i, j, k, int(s)))
+                    self._lamp(
+                        b, side.start + side.u * s + side.n * (SIDEWALK - 0.5), side.n, (i, j, k, int(s))
+                    )
                 s += float(rng.uniform(18.0, 26.0))
         # a traffic sign facing the traffic of the adjacent lane (which moves along -u), near the side's start
         if c > 0 and rng.random() < min(0.9, 0.6 * c):
@@ -357,9 +412,13 @@ class Town:
             if ln > 2.0:
                 p = side.start + side.u * a + side.n * (SIDEWALK - 0.25)
                 tex = self.bank.register(tx.fence, ln, 1.1, PPM_FENCE, seed=(self.seed, K_FENCE, i, j, k, 99))
-                vertical_quad(b, p, side.u, ln, 0.0, 1.1, tex, PPM_FENCE, FENCE, two_sided=True, chunk_m=CHUNK)
+                vertical_quad(
+                    b, p, side.u, ln, 0.0, 1.1, tex, PPM_FENCE, FENCE, two_sided=True, chunk_m=CHUNK
+                )
 
-    def _tree(self, b: QuadBuilder, pos: np.ndarray, u: np.ndarray, key: tuple[int, ...], rng: np.random.Generator) -> None:
+    def _tree(
+        self, b: QuadBuilder, pos: np.ndarray, u: np.ndarray, key: tuple[int, ...], rng: np.random.Generator
+    ) -> None:
         trunk_h = float(rng.uniform(2.2, 3.2))
         cw = float(rng.uniform(3.5, 5.5))
         ch = float(rng.uniform(3.5, 5.5))
@@ -367,13 +426,38 @@ class Town:
         perp = np.array([-u[1], u[0], 0.0])
         bark = self.bank.register(tx.bark, tw, trunk_h + 1.0, PPM_BARK, seed=(self.seed, K_TREE, *key, 0))
         for ax in (u, perp):
-            vertical_quad(b, pos - ax * tw / 2, ax, tw, 0.0, trunk_h + 1.0, bark, PPM_BARK, TREE, two_sided=True)
+            vertical_quad(
+                b, pos - ax * tw / 2, ax, tw, 0.0, trunk_h + 1.0, bark, PPM_BARK, TREE, two_sided=True
+            )
         vertical_quad(self._prop_casters, pos - u * tw / 2, u, tw, 0.0, trunk_h + 1.0, bark, PPM_BARK, TREE)
         z0 = trunk_h - 0.6
         for a, ax in enumerate((u, perp)):
             tex = self.bank.register(tx.foliage, cw, ch, PPM_TREE, seed=(self.seed, K_TREE, *key, 1 + a))
-            vertical_quad(b, pos - ax * cw / 2, ax, cw, z0, z0 + ch, tex, PPM_TREE, TREE, two_sided=True, lit=LIT_FOLIAGE)
-            vertical_quad(self._prop_casters, pos - ax * cw / 2, ax, cw, z0, z0 + ch, tex, PPM_TREE, TREE, lit=LIT_FOLIAGE)
+            vertical_quad(
+                b,
+                pos - ax * cw / 2,
+                ax,
+                cw,
+                z0,
+                z0 + ch,
+                tex,
+                PPM_TREE,
+                TREE,
+                two_sided=True,
+                lit=LIT_FOLIAGE,
+            )
+            vertical_quad(
+                self._prop_casters,
+                pos - ax * cw / 2,
+                ax,
+                cw,
+                z0,
+                z0 + ch,
+                tex,
+                PPM_TREE,
+                TREE,
+                lit=LIT_FOLIAGE,
+            )
 
     def _lamp(self, b: QuadBuilder, pos: np.ndarray, n: np.ndarray, key: tuple[int, ...]) -> None:
         h = 6.0
@@ -386,7 +470,14 @@ class Town:
         head = self.bank.register(tx.lamp_head, 1.6, 0.5, PPM_POLE, seed=(self.seed, K_POLE, *key, 1))
         vertical_quad(b, pos, n, 1.6, h - 0.45, h + 0.05, head, PPM_POLE, POLE, two_sided=True)
 
-    def _sign(self, b: QuadBuilder, pos: np.ndarray, face: np.ndarray, key: tuple[int, ...], rng: np.random.Generator) -> None:
+    def _sign(
+        self,
+        b: QuadBuilder,
+        pos: np.ndarray,
+        face: np.ndarray,
+        key: tuple[int, ...],
+        rng: np.random.Generator,
+    ) -> None:
         """A sign on a pole; its face looks along ``face`` (towards the traffic it is for)."""
         h = float(rng.uniform(2.2, 2.6))
         pw = 0.07
@@ -398,7 +489,9 @@ class Town:
         if kind < 0.2:  # traffic light housing
             tw_, th_ = 0.35, 1.0
             lit = int(rng.integers(3))
-            tl = self.bank.register(tx.traffic_light, tw_, th_, PPM_SIGN, lit, seed=(self.seed, K_SIGN, *key, 1))
+            tl = self.bank.register(
+                tx.traffic_light, tw_, th_, PPM_SIGN, lit, seed=(self.seed, K_SIGN, *key, 1)
+            )
             back = self.bank.register(tx.metal, tw_, th_, PPM_SIGN, seed=(self.seed, K_SIGN, *key, 2))
             u = facade_u(face)
             p = pos + face * 0.05
@@ -411,7 +504,9 @@ class Town:
         u = facade_u(face)
         p = pos + face * 0.05
         vertical_quad(b, p - u * size / 2, u, size, h - 0.2, h - 0.2 + size, plate, PPM_SIGN, SIGN)
-        vertical_quad(b, p - face * 0.01 + u * size / 2, -u, size, h - 0.2, h - 0.2 + size, back, PPM_SIGN, SIGN)
+        vertical_quad(
+            b, p - face * 0.01 + u * size / 2, -u, size, h - 0.2, h - 0.2 + size, back, PPM_SIGN, SIGN
+        )
         if kind > 0.75:  # a street-name plate under it, readable from both sides
             name = self.bank.register(tx.street_name, 1.0, 0.25, PPM_SIGN, seed=(self.seed, K_SIGN, *key, 3))
             vertical_quad(b, p - u * 0.5, u, 1.0, h - 0.6, h - 0.35, name, PPM_SIGN, SIGN, two_sided=True)
@@ -430,32 +525,50 @@ class Town:
                 e = cross[seg + 1] - (ROAD_HALF if seg < n_cross - 1 else 0.0)
                 length = float(e - a)
                 start = (np.array([pos, a, 0.0]) if axis == 0 else np.array([a, pos, 0.0])) - r * ROAD_HALF
-                tex = self.bank.register(tx.road, length, 2 * ROAD_HALF, PPM_ROAD, parking_m=PARKING, zebra=(seg > 0, seg < n_cross - 1), seed=(self.seed, K_ROAD, axis, idx, seg))
+                tex = self.bank.register(
+                    tx.road,
+                    length,
+                    2 * ROAD_HALF,
+                    PPM_ROAD,
+                    parking_m=PARKING,
+                    zebra=(seg > 0, seg < n_cross - 1),
+                    seed=(self.seed, K_ROAD, axis, idx, seg),
+                )
                 ground_quad(b, start, u, length, 2 * ROAD_HALF, tex, PPM_ROAD, ROAD, chunk_m=CHUNK)
         # crossings
         for i in range(1, self.nbx):
             for j in range(1, self.nby):
-                tex = self.bank.register(tx.intersection, 2 * ROAD_HALF, PPM_ROAD, seed=(self.seed, K_CROSS, i, j))
+                tex = self.bank.register(
+                    tx.intersection, 2 * ROAD_HALF, PPM_ROAD, seed=(self.seed, K_CROSS, i, j)
+                )
                 start = self.node(i, j) + np.array([-ROAD_HALF, ROAD_HALF, 0.0])
-                ground_quad(b, start, np.array([1.0, 0.0, 0.0]), 2 * ROAD_HALF, 2 * ROAD_HALF, tex, PPM_ROAD, ROAD)
+                ground_quad(
+                    b, start, np.array([1.0, 0.0, 0.0]), 2 * ROAD_HALF, 2 * ROAD_HALF, tex, PPM_ROAD, ROAD
+                )
 
     def _build_town_edge(self, b: QuadBuilder) -> None:
         """A tall building across each street's end, wide enough to hide what lies behind."""
         half = SETBACK + 12.0
         for axis, idx in self.street_lines():
             pos = (self.xs if axis == 0 else self.ys)[idx]
-            lo, hi = ((self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1]))
+            lo, hi = (self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1])
             for end, (edge, sgn) in enumerate(((lo, 1.0), (hi, -1.0))):
                 n = np.array([0.0, sgn, 0.0]) if axis == 0 else np.array([sgn, 0.0, 0.0])
                 u = facade_u(n)
                 centre = np.array([pos, edge, 0.0]) if axis == 0 else np.array([edge, pos, 0.0])
                 rng = np.random.default_rng([self.seed, K_END, axis, idx, end])
                 h = float(rng.uniform(18.0, 28.0))
-                tex = self.bank.register(tx.facade, 2 * half, h, PPM_FACADE, seed=(self.seed, K_END, axis, idx, end))
-                vertical_quad(b, centre - u * half, u, 2 * half, 0.0, h, tex, PPM_FACADE, BUILDING, chunk_m=CHUNK)
+                tex = self.bank.register(
+                    tx.facade, 2 * half, h, PPM_FACADE, seed=(self.seed, K_END, axis, idx, end)
+                )
+                vertical_quad(
+                    b, centre - u * half, u, 2 * half, 0.0, h, tex, PPM_FACADE, BUILDING, chunk_m=CHUNK
+                )
                 self._casters.append((np.array([*(centre - u * half)[:2], h]), u, 2 * half, h, n))
 
-    def occluded(self, corners: np.ndarray, cameras: list[np.ndarray], skip_within: float = 10.0) -> np.ndarray:
+    def occluded(
+        self, corners: np.ndarray, cameras: list[np.ndarray], skip_within: float = 10.0
+    ) -> np.ndarray:
         """Which quads are hidden behind a block from every camera centre given.
 
         A quad is hidden when the sight lines to all its corners pass through the same block's
@@ -534,13 +647,13 @@ class Town:
         if c > 0:
             for axis, idx in self.street_lines():
                 pos = (self.xs if axis == 0 else self.ys)[idx]
-                lo, hi = ((self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1]))
+                lo, hi = (self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1])
                 along = np.array([0.0, 1.0, 0.0]) if axis == 0 else np.array([1.0, 0.0, 0.0])
                 line_len = float(hi - lo)
                 for sgn in (1, -1):
                     d = along * sgn
                     r = right_of(d)
-                    origin = (np.array([pos, lo, 0.0]) if axis == 0 else np.array([lo, pos, 0.0]))
+                    origin = np.array([pos, lo, 0.0]) if axis == 0 else np.array([lo, pos, 0.0])
                     if sgn < 0:
                         origin = origin + along * line_len
                     # parked cars along this direction's parking strip
@@ -552,17 +665,33 @@ class Town:
                         while s + 5.0 < e:
                             if rng.random() < min(0.9, 0.45 * c):
                                 centre_s = s + 2.8 + rng.uniform(-0.3, 0.3)
-                                p = (np.array([pos, centre_s, 0.0]) if axis == 0 else np.array([centre_s, pos, 0.0])) + r * PARK_LANE
+                                p = (
+                                    np.array([pos, centre_s, 0.0])
+                                    if axis == 0
+                                    else np.array([centre_s, pos, 0.0])
+                                ) + r * PARK_LANE
                                 k = add(p, d, 1.0, 0.0, 0.0)
                                 self._car(b, k, rng, lap)
                             s += 6.0
                     if (axis, idx, sgn) in camera_lanes:
                         continue
                     for _ in range(int(rng.poisson(line_len / 70.0 * c))):
-                        k = add(origin + r * DRIVE_LANE, d, line_len, float(rng.uniform(0, line_len)), float(rng.uniform(6.0, 11.0)))
+                        k = add(
+                            origin + r * DRIVE_LANE,
+                            d,
+                            line_len,
+                            float(rng.uniform(0, line_len)),
+                            float(rng.uniform(6.0, 11.0)),
+                        )
                         self._car(b, k, rng, lap)
                     for _ in range(int(rng.poisson(line_len / 200.0 * c))):
-                        k = add(origin + r * (ROAD_HALF - PARKING - 0.6), d, line_len, float(rng.uniform(0, line_len)), float(rng.uniform(3.5, 6.0)))
+                        k = add(
+                            origin + r * (ROAD_HALF - PARKING - 0.6),
+                            d,
+                            line_len,
+                            float(rng.uniform(0, line_len)),
+                            float(rng.uniform(3.5, 6.0)),
+                        )
                         self._cyclist(b, k, rng, lap)
             for si, side in enumerate(self.sides):
                 for _ in range(int(rng.poisson(side.length / 10.0 * c))):
@@ -578,7 +707,9 @@ class Town:
         if not starts:
             z = np.zeros((0, 3))
             return Movers(z, z, np.zeros(0), np.zeros(0), np.zeros(0), quads)
-        return Movers(np.array(starts), np.array(dirs), np.array(lengths), np.array(s0s), np.array(speeds), quads)
+        return Movers(
+            np.array(starts), np.array(dirs), np.array(lengths), np.array(s0s), np.array(speeds), quads
+        )
 
     def _car(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> None:
         L = float(rng.uniform(3.9, 4.8))
@@ -603,16 +734,42 @@ class Town:
         h = float(rng.uniform(1.55, 1.9))
         tex = self.bank.register(tx.pedestrian, h, PPM_PED, seed=(self.seed, K_LAP, *key, 5000 + k))
         x, y = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
-        vertical_quad(b, np.array([0.0, -0.3, 0.0]), y, 0.6, 0.0, h, tex, PPM_PED, PEDESTRIAN, two_sided=True, obj=k)
-        b.add(np.array([0.2, 0.0, h]), -x, -UP, 0.4, h, tex, PPM_PED * 0.6 / 0.4, PEDESTRIAN, two_sided=True, obj=k)
+        vertical_quad(
+            b, np.array([0.0, -0.3, 0.0]), y, 0.6, 0.0, h, tex, PPM_PED, PEDESTRIAN, two_sided=True, obj=k
+        )
+        b.add(
+            np.array([0.2, 0.0, h]),
+            -x,
+            -UP,
+            0.4,
+            h,
+            tex,
+            PPM_PED * 0.6 / 0.4,
+            PEDESTRIAN,
+            two_sided=True,
+            obj=k,
+        )
 
     def _cyclist(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> None:
         key = (self.seed, K_LAP, lap, 8000 + k)
         side = self.bank.register(tx.bicyclist, PPM_PED, seed=key)
         front = self.bank.register(tx.pedestrian, 1.75, PPM_PED, seed=key)
         x, y = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
-        vertical_quad(b, np.array([0.9, 0.0, 0.0]), -x, 1.8, 0.0, 1.75, side, PPM_PED, BICYCLIST, two_sided=True, obj=k)
-        b.add(np.array([0.0, -0.25, 1.75]), y, -UP, 0.5, 1.75, front, PPM_PED * 0.6 / 0.5, BICYCLIST, two_sided=True, obj=k)
+        vertical_quad(
+            b, np.array([0.9, 0.0, 0.0]), -x, 1.8, 0.0, 1.75, side, PPM_PED, BICYCLIST, two_sided=True, obj=k
+        )
+        b.add(
+            np.array([0.0, -0.25, 1.75]),
+            y,
+            -UP,
+            0.5,
+            1.75,
+            front,
+            PPM_PED * 0.6 / 0.5,
+            BICYCLIST,
+            two_sided=True,
+            obj=k,
+        )
 
     def lap_decals(self, light: Lighting) -> Decals:
         """Cast shadows of buildings (on the ground and the facades across the street) and props."""
@@ -632,7 +789,10 @@ class Town:
         for top_left, u, w, h, n in self._casters:
             if float(n @ s) >= 0.0:  # facing the sun: its shadow falls behind it, out of sight
                 continue
-            for q0, m in ((np.zeros(3), ground_n), (top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK, -n)):
+            for q0, m in (
+                (np.zeros(3), ground_n),
+                (top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK, -n),
+            ):
                 if float(s @ m) <= 1e-3:
                     continue
                 tl = project(top_left, q0, m)
@@ -648,9 +808,24 @@ class Town:
         pc = self.prop_casters
         if len(pc):
             pn = pc.normals()
-            # of each crossed pair keep the quad that faces the sun most
+            facing = np.abs(pn @ s)
             for qi in range(len(pc)):
-                if abs(float(pn[qi] @ s)) < 0.15:  # nearly edge-on to the sun: a sliver of shadow
+                if facing[qi] < 0.15:  # nearly edge-on to the sun: a sliver of shadow
+                    continue
+                # of a canopy's crossed pair keep the quad facing the sun most
+                if (
+                    pc.lit[qi] == LIT_FOLIAGE
+                    and qi + 1 < len(pc)
+                    and pc.lit[qi + 1] == LIT_FOLIAGE
+                    and facing[qi + 1] > facing[qi]
+                ):
+                    continue
+                if (
+                    pc.lit[qi] == LIT_FOLIAGE
+                    and qi > 0
+                    and pc.lit[qi - 1] == LIT_FOLIAGE
+                    and facing[qi - 1] >= facing[qi]
+                ):
                     continue
                 o = pc.origin[qi]
                 oo = o - s * (o[2] / s[2])
@@ -685,5 +860,3 @@ def mean_block() -> float:
 
 def block_perimeter_estimate(w: int, h: int) -> float:
     return 2.0 * (w + h) * mean_block()
-
-

@@ -57,11 +57,16 @@ class LoopTruthConfig:
 
     def validate(self) -> None:
         if not self.max_distance >= 0 or not 0 <= self.max_angle_deg <= 180:
-            raise ConfigError(f"LoopTruthConfig: max_distance >= 0 and 0 <= max_angle_deg <= 180 expected, got {self.max_distance}, {self.max_angle_deg}")
+            raise ConfigError(
+                "LoopTruthConfig: max_distance >= 0 and 0 <= max_angle_deg <= 180 expected, "
+                f"got {self.max_distance}, {self.max_angle_deg}"
+            )
         if self.min_gap_frames < 0:
             raise ConfigError(f"LoopTruthConfig: min_gap_frames >= 0 expected, got {self.min_gap_frames}")
         if self.opposite not in ("never", "covisible", "always"):
-            raise ConfigError(f"LoopTruthConfig: opposite must be 'never', 'covisible' or 'always', got {self.opposite!r}")
+            raise ConfigError(
+                f"LoopTruthConfig: opposite must be 'never', 'covisible' or 'always', got {self.opposite!r}"
+            )
         if not 0 < self.min_covisible <= 1:
             raise ConfigError(f"LoopTruthConfig: min_covisible in (0, 1] expected, got {self.min_covisible}")
 
@@ -72,7 +77,7 @@ class Visibility:
 
     Attributes:
         ids: per frame, (k,) int32 sorted ids of the surfaces seen.
-        counts: per frame, (k,) int64 pixels of each.
+        counts: per frame, (k,) float apparent size of each, pixels.
         centres: (Q, 3) float world centre of every surface id.
     """
 
@@ -110,7 +115,9 @@ def loop_truth(
     n = positions.shape[0]
     check_array("headings", headings, shape=(n,))
     if config.opposite == "always":
-        return loops_from_poses(positions, max_distance=config.max_distance, min_gap_frames=config.min_gap_frames)
+        return loops_from_poses(
+            positions, max_distance=config.max_distance, min_gap_frames=config.min_gap_frames
+        )
     gt = loops_from_poses(
         positions,
         max_distance=config.max_distance,
@@ -138,7 +145,9 @@ def loop_truth(
     for i, j in zip(*np.nonzero(cand), strict=True):
         if totals[i] <= 0 or totals[j] <= 0:
             continue
-        common, ai, aj = np.intersect1d(visibility.ids[i], visibility.ids[j], assume_unique=True, return_indices=True)
+        common, ai, aj = np.intersect1d(
+            visibility.ids[i], visibility.ids[j], assume_unique=True, return_indices=True
+        )
         if not len(common):
             continue
         c = visibility.centres[common]
