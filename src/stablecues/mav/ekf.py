@@ -351,6 +351,7 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
         yaw, yaw_sigma = 0.0, float(np.pi)
         if len(mag) and cfg.use_mag:
             msel = (mag.t >= w0 - 1.0) & (mag.t <= w1 + 1.0)
+            msel &= np.linalg.norm(mag.field, axis=1) > 0  # an all-zero field: no compass fitted
             if np.any(msel):
                 yaw, yaw_sigma = mag_heading(mag.field[msel].mean(axis=0), roll, pitch, decl), 0.3
         if yaw_sigma >= np.pi:
