@@ -170,7 +170,9 @@ class LoopDetector:
                 lifter = self._lifters[id(calib)] = StereoLifter(calib)
             return lifter.lift(features, frame.image, frame.right)
         if frame.depth is not None:
-            return lift_depth(features, frame.depth, calib.left)
+            raw = np.issubdtype(np.asarray(frame.depth).dtype, np.integer)  # e.g. a 16-bit PNG as read
+            return lift_depth(features, frame.depth, calib.left,
+                              depth_scale=calib.depth_scale if raw else None)
         return None
 
     def _verifier(self, calib: Any | None) -> Any:

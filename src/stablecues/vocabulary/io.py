@@ -98,13 +98,13 @@ def _save_text(voc: Vocabulary, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def load_vocabulary(path: str | Path, levels_up: int = 4, mmap: bool = False) -> Vocabulary:
+def load_vocabulary(path: str | Path, levels_up: int | None = None, mmap: bool = False) -> Vocabulary:
     """Load a vocabulary, detecting the format from the file's first bytes.
 
     Args:
         path: binary (``SCVOCAB``) or DBoW2 / ORB-SLAM text file.
-        levels_up: direct-index level of the returned vocabulary (binary files store their own
-            default, used when this is left at None).
+        levels_up: direct-index level of the returned vocabulary; None: the level a binary
+            file records, or ``L - 2`` for text files.
         mmap: memory-map a binary file instead of reading it (the CRC is still checked).
 
     Raises:
@@ -155,7 +155,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
         return Vocabulary(
             int(header["k"]), int(header["L"]), arrays["parents"], arrays["descriptors"],
             arrays["weights"], Weighting(header["weighting"]), Scoring(header["scoring"]),
-            levels_up=int(header.get("levels_up", 4)) if levels_up is None else levels_up,
+            levels_up=header.get("levels_up") if levels_up is None else levels_up,
             fingerprint=str(header["fingerprint"]), children=arrays["children"],
         )
     except (KeyError, ValueError, TypeError) as exc:
@@ -199,7 +199,7 @@ def _load_text(path: Path, levels_up: int | None) -> Vocabulary:
     weights = np.zeros(n, np.float64)
     weights[1:] = table[:, 34]
     voc = Vocabulary(k, levels, parents, desc, weights, Weighting(weighting), Scoring(scoring),
-                     levels_up=4 if levels_up is None else levels_up)
+                     levels_up=levels_up)
     flags = table[:, 1].astype(np.int64)
     if not np.array_equal(flags.astype(bool), voc.is_leaf[1:]):
         bad = int(np.flatnonzero(flags.astype(bool) != voc.is_leaf[1:])[0]) + 2

@@ -105,7 +105,7 @@ def train_vocabulary(
     scoring: Scoring = Scoring.L1,
     seed: int = 0,
     max_iter: int = 15,
-    levels_up: int = 4,
+    levels_up: int | None = None,
     progress: bool = True,
 ) -> Vocabulary:
     """Train a vocabulary tree from the descriptors of a set of training images.
@@ -118,7 +118,7 @@ def train_vocabulary(
         scoring: scoring the vocabulary's BoW vectors are normalised for.
         seed: random seed; the same inputs and seed give the same tree.
         max_iter: k-majority iterations per node.
-        levels_up: default direct-index level of the returned vocabulary.
+        levels_up: default direct-index level of the returned vocabulary (None: L - 2).
         progress: show a progress bar.
 
     Returns:

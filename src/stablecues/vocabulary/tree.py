@@ -43,7 +43,10 @@ class Vocabulary:
         weights: (n,) float64 node weights (used for leaves).
         weighting: how BoW weights are made.
         scoring: how BoW vectors are compared (decides their normalisation).
-        levels_up: default level of the direct index, counted up from the leaves' level L.
+        levels_up: default level of the direct index, counted up from the leaves' level L;
+            None: ``L - 2``, i.e. the direct index groups features under the ~k^2 nodes of
+            level 2, as ORB-SLAM does with its 6-level vocabulary and ``levelsup = 4`` (coarser
+            groups make matching slower, finer ones miss correspondences).
         fingerprint: identity of the tree; computed from the arrays when not given.
     """
 
@@ -56,7 +59,7 @@ class Vocabulary:
         weights: np.ndarray,
         weighting: Weighting = Weighting.TF_IDF,
         scoring: Scoring = Scoring.L1,
-        levels_up: int = 4,
+        levels_up: int | None = None,
         fingerprint: str | None = None,
         children: np.ndarray | None = None,
     ) -> None:
@@ -93,7 +96,7 @@ class Vocabulary:
                 f"vocabulary: tree is {int(self.depth.max())} levels deep but the header says L={levels}"
             )
         self._build_search_tables()
-        self.levels_up = int(levels_up)
+        self.levels_up = max(self.levels - 2, 0) if levels_up is None else int(levels_up)
         self._di_cache: dict[int, np.ndarray] = {}
         self._fingerprint = fingerprint
 
@@ -261,7 +264,7 @@ class Vocabulary:
         save_vocabulary(self, path)
 
     @staticmethod
-    def load(path: str | Path, levels_up: int = 4) -> Vocabulary:
+    def load(path: str | Path, levels_up: int | None = None) -> Vocabulary:
         """Load a vocabulary file (own binary format or DBoW2 / ORB-SLAM text, detected)."""
         from .io import load_vocabulary
 
