@@ -52,7 +52,8 @@ def main() -> None:
         "file": args.out.name, "images": len(images), "sources": ["camvid/train", "camvid/val"],
         "descriptors": int(sum(s.shape[0] for s in sets)), "k": info.k, "L": info.levels,
         "words": info.n_words, "nodes": info.n_nodes, "weighting": info.weighting,
-        "scoring": info.scoring, "levels_up": voc.levels_up, "seed": args.seed, "train_seconds": round(took, 1),
+        "scoring": info.scoring, "levels_up": voc.levels_up, "seed": args.seed,
+        "train_seconds": round(took, 1),
         "fingerprint": info.fingerprint, "extractor": "ORB 1000, quadtree, 8 levels, scale 1.2",
         "command": "python scripts/make_vocabulary.py",
     }
