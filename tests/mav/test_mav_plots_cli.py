@@ -23,6 +23,7 @@ from stablecues.mav.plots import (  # noqa: E402
     mode_bands_of,
     mode_colour,
     mode_label,
+    yaw_window,
 )
 
 
@@ -46,6 +47,13 @@ def test_mode_spans_merge_repeats() -> None:
     spans = mode_spans(changes, 10.0)
     assert [(s.name, s.start, s.end) for s in spans] == [("A", 0.0, 5.0), ("B", 5.0, 7.0), ("A", 7.0, 10.0)]
     assert mode_spans([], 10.0) == ()
+
+
+def test_yaw_window_centres_the_headings() -> None:
+    assert yaw_window(np.array([350.0, 5.0, 20.0])) == -180.0  # heading north: [-180, 180)
+    assert yaw_window(np.array([170.0, 190.0])) == 0.0  # heading south: [0, 360)
+    assert yaw_window(np.array([85.0, 95.0])) == -90.0
+    assert yaw_window(np.array([])) == 0.0
 
 
 def test_gapped_breaks_lines() -> None:

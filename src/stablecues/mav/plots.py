@@ -250,8 +250,20 @@ def plot_position_panels(
     axes[-1].set_xlabel("time [s]")
 
 
+def yaw_window(yaw_deg: np.ndarray) -> float:
+    """Lower edge of the 360-degree window in which to show headings: centred on their circular
+    mean and rounded to 90 degrees, so a flight heading north is not split between 0 and 360."""
+    y = np.radians(np.asarray(yaw_deg, dtype=np.float64))
+    y = y[np.isfinite(y)]
+    if len(y) == 0:
+        return 0.0
+    mean = float(np.degrees(np.arctan2(np.mean(np.sin(y)), np.mean(np.cos(y)))))
+    low = 90.0 * np.round((mean - 180.0) / 90.0)
+    return float((low + 180.0) % 360.0 - 180.0)  # in [-180, 180)
+
+
 def _break_wraps(t: np.ndarray, deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Insert NaN where a [0, 360) angle wraps, so lines do not cross the plot."""
+    """Insert NaN where a wrapped angle jumps by a full turn, so lines do not cross the plot."""
     jumps = np.flatnonzero(np.abs(np.diff(deg)) > 180.0)
     if len(jumps) == 0:
         return t, deg
@@ -261,9 +273,11 @@ def _break_wraps(t: np.ndarray, deg: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def plot_attitude(
     axes: Sequence[Axes], log: FlightLog, *, solution: NavSolution | None = None, modes: bool = False
 ) -> None:
-    """Roll, pitch and yaw over time, one panel each (paper Fig. 7); yaw in [0, 360) degrees.
+    """Roll, pitch and yaw over time, one panel each (paper Fig. 7), in degrees.
 
-    Draws the autopilot's attitude and, when given, ``solution``'s.
+    Draws the autopilot's attitude and, when given, ``solution``'s. Yaw is shown in a 360-degree
+    window centred on the flight's mean heading (:func:`yaw_window`), e.g. [-180, 180) for a
+    flight heading north, [0, 360) for one heading south.
     """
     if len(axes) != 3:
         raise ValueError(f"plot_attitude needs 3 axes, got {len(axes)}")
@@ -273,19 +287,20 @@ def plot_attitude(
     if solution is not None and solution.has_attitude:
         series.append((solution.name, solution.t, np.degrees(solution.rpy), {"color": "tab:red", "lw": 0.8}))
     spans = log.mode_spans() if modes else ()
+    low = yaw_window(series[0][2][:, 2]) if series else 0.0
     for k, (ax, label) in enumerate(zip(axes, ("roll [deg]", "pitch [deg]", "yaw [deg]"), strict=True)):
         handles: list[Any] = []
         for name, t, rpy, style in series:
             tt, values = gapped(t, rpy[:, k])
             if k == 2:
-                tt, values = _break_wraps(tt, np.mod(values, 360.0))
+                tt, values = _break_wraps(tt, low + np.mod(values - low, 360.0))
             handles += ax.plot(tt, values, label=name, **style)
         add_mode_bands(ax, spans)
         ax.set_ylabel(label)
         ax.set_xlim(0.0, max(log.duration, 1e-3))
         if k == 2:
-            ax.set_ylim(0.0, 360.0)
-            ax.set_yticks([0, 90, 180, 270, 360])
+            ax.set_ylim(low, low + 360.0)
+            ax.set_yticks(low + np.arange(0.0, 361.0, 90.0))
         if k == 0:
             _legend(ax, handles + mode_legend_handles(spans))
     axes[-1].set_xlabel("time [s]")
@@ -386,4 +401,5 @@ __all__ = [
     "plot_position_panels",
     "plot_trajectory",
     "save_flight_figures",
+    "yaw_window",
 ]
