@@ -245,11 +245,16 @@ def test_orb_recognises_a_revisit() -> None:
     def good(da: np.ndarray, db: np.ndarray) -> int:
         return sum(1 for m in bf.match(da, db) if m.distance < 40)
 
-    wins = 0
-    for i in queries[:: max(1, len(queries) // 4)][:4]:
+    revisit, unrelated = [], []
+    for i in queries[::2]:
         js = np.nonzero(gt[i])[0]
         j = js[np.argmin(np.linalg.norm(town.positions[js] - town.positions[i], axis=1))]
         k = int(np.argmax(np.linalg.norm(town.positions[: i - 10] - town.positions[i], axis=1)))
         di = desc(i)
-        wins += good(di, desc(j)) > 2 * good(di, desc(k)) + 5
-    assert wins >= 3
+        revisit.append(good(di, desc(j)))
+        unrelated.append(good(di, desc(k)))
+    rv, un = np.array(revisit), np.array(unrelated)
+    # small images and a dusk revisit from another lane: some pairs match weakly, so ask for the
+    # typical revisit to stand out and for nearly every one to beat the unrelated frame
+    assert np.median(rv) > 3 * np.median(un) + 10
+    assert np.mean(rv > un) > 0.8

@@ -125,8 +125,8 @@ class Renderer:
         W, H = cam.width, cam.height
         self.K = cam.K
         self.K_inv = np.linalg.inv(self.K)
-        self.gx = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
-        self.gy = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
+        self.gx = np.ascontiguousarray(np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W)))
+        self.gy = np.ascontiguousarray(np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W)))
         # sky: azimuth offset per column and elevation per pixel of a level camera
         xn = (np.arange(W) - cam.cx) / cam.fx
         yn = (np.arange(H) - cam.cy) / cam.fy
@@ -134,6 +134,8 @@ class Renderer:
         self._sky_el = np.arctan2(-yn[:, None], np.sqrt(1.0 + xn[None, :] ** 2))
         self.sky_el_max = math.radians(40.0)
         self._label_planes = [np.full((H, W), k, np.uint8) for k in range(12)]
+        self._sky_rows: dict[int, np.ndarray] = {}
+        self._noise: dict[float, np.ndarray] = {}
 
     # ------------------------------------------------------------------ geometry per quad
 
@@ -203,12 +205,10 @@ class Renderer:
         return {"ok": ok, "box": box, "zmin": zmin, "poly": poly, "clipped": clipped}
 
     def _inv_depth(self, abc: np.ndarray, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        """Depth (float32) over a box of the plane with inverse-depth coefficients ``abc``."""
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return 1.0 / (
-                np.float32(abc[0]) * self.gx[y0:y1, x0:x1]
-                + (np.float32(abc[1]) * self.gy[y0:y1, x0:x1] + np.float32(abc[2]))
-            )
+        """Inverse depth (float32, 1/metres) over a box, of the plane with coefficients ``abc``."""
+        return cv2.addWeighted(
+            self.gx[y0:y1, x0:x1], float(abc[0]), self.gy[y0:y1, x0:x1], float(abc[1]), float(abc[2])
+        )
 
     # ------------------------------------------------------------------ main entry
 
@@ -243,7 +243,7 @@ class Renderer:
         cam = self.cam
         H, W = cam.height, cam.width
         img = np.zeros((H, W, 3), np.uint8)
-        zbuf = np.full((H, W), np.inf, np.float32)
+        ibuf = np.zeros((H, W), np.float32)  # inverse depth: 0 where nothing is (the sky)
         lab = np.full((H, W), SKY, np.uint8) if labels else None
         inst = np.zeros((H, W), np.int32) if labels else None
         m_count = len(quads)
@@ -281,10 +281,11 @@ class Renderer:
             with np.errstate(invalid="ignore"):
                 pts16 = np.round((poly - box[:, None, :2]) * 16.0).astype(np.int32)
             abc = g["abc"]
+            izmax = 1.0 / np.maximum(zmin, self.near)
             for qi in order.tolist():
                 x0, y0, x1, y1 = box[qi].tolist()
-                zs = zbuf[y0:y1, x0:x1]
-                if zs.max() < zmin[qi]:
+                ib = ibuf[y0:y1, x0:x1]
+                if ib.min() > izmax[qi]:
                     continue  # hidden behind what is already drawn
                 pyramid = self.bank.levels(int(quads.tex[qi]))
                 Hm = Hs[qi]
@@ -302,8 +303,8 @@ class Renderer:
                 pp = clipped.get(qi)
                 pts = pts16[qi] if pp is None else np.round((pp - (x0, y0)) * 16.0).astype(np.int32)
                 cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
-                z = self._inv_depth(abc[qi], y0, y1, x0, x1)
-                cv2.bitwise_and(mask, cv2.compare(z, zs, cv2.CMP_LT), dst=mask)
+                iz = self._inv_depth(abc[qi], y0, y1, x0, x1)
+                cv2.bitwise_and(mask, cv2.compare(iz, ib, cv2.CMP_GT), dst=mask)
                 gq = gains[qi]
                 if warped.shape[2] == 4:
                     opaque = cv2.threshold(cv2.extractChannel(warped, 3), 127, 255, cv2.THRESH_BINARY)[1]
@@ -311,25 +312,34 @@ class Renderer:
                     col = cv2.cvtColor(_scaled(warped, gq), cv2.COLOR_BGRA2BGR)
                 else:
                     col = _scaled(warped, gq)
-                cv2.copyTo(z, mask, zs)
+                cv2.copyTo(iz, mask, ib)
                 cv2.copyTo(col, mask, img[y0:y1, x0:x1])
                 if lab is not None and inst is not None:
                     cv2.copyTo(self._label_planes[quads.label[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
                     cv2.copyTo(np.full((bh, bw), ids[qi], np.int32), mask, inst[y0:y1, x0:x1])
         if decals is not None and len(decals.quads):
-            self._shadows(img, zbuf, R, C, decals)
-        self._sky(img, zbuf, R, light)
+            self._shadows(img, ibuf, R, C, decals)
+        self._sky(img, ibuf, R, light)
         if noise > 0:
-            rng = noise_rng if noise_rng is not None else np.random.default_rng(0)
-            n = rng.standard_normal((H, W), dtype=np.float32) * np.float32(noise)
-            img = np.clip(img.astype(np.float32) + n[:, :, None], 0, 255).astype(np.uint8)
-        depth = np.where(np.isfinite(zbuf), zbuf, np.float32(0.0)).astype(np.float32)
+            self._add_noise(img, noise, noise_rng if noise_rng is not None else np.random.default_rng(0))
+        depth = np.divide(np.float32(1.0), ibuf, out=np.zeros_like(ibuf), where=ibuf > 0)
         return View(img, depth, lab, inst, lv)
+
+    def _add_noise(self, img: np.ndarray, sigma: float, rng: np.random.Generator) -> None:
+        """Add Gaussian sensor noise in place: a window of a fixed noise field, placed by ``rng``."""
+        H, W = img.shape[:2]
+        field = self._noise.get(sigma)
+        if field is None:
+            unit = np.random.default_rng(12345).standard_normal((2 * H, 2 * W, 3), dtype=np.float32)
+            field = np.round(unit * np.float32(sigma)).astype(np.int16)
+            self._noise[sigma] = field
+        oy, ox = int(rng.integers(0, H)), int(rng.integers(0, W))
+        cv2.add(img, field[oy : oy + H, ox : ox + W], dst=img, dtype=cv2.CV_8U)
 
     # ------------------------------------------------------------------ shadows and sky
 
     def _shadows(
-        self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, C: np.ndarray, decals: Decals
+        self, img: np.ndarray, ibuf: np.ndarray, R: np.ndarray, C: np.ndarray, decals: Decals
     ) -> None:
         cam = self.cam
         H, W = cam.height, cam.width
@@ -357,11 +367,11 @@ class Renderer:
                 lineType=cv2.LINE_8,
                 shift=4,
             )
-            z = self._inv_depth(g["abc"][k], y0, y1, x0, x1)
-            zs = zbuf[y0:y1, x0:x1]
-            on = cv2.compare(
-                cv2.absdiff(zs, z), cv2.scaleAdd(z, float(tol_rel), np.full_like(z, tol_abs)), cv2.CMP_LE
-            )
+            iz = self._inv_depth(g["abc"][k], y0, y1, x0, x1)
+            ib = ibuf[y0:y1, x0:x1]
+            # on the receiving surface: |depth difference| <= tol_rel * z + tol_abs, in inverse depth
+            tol = iz * (tol_rel + tol_abs * iz)
+            on = cv2.compare(cv2.absdiff(ib, iz), tol, cv2.CMP_LE)
             cv2.bitwise_and(mask, on, dst=mask)
             cv2.bitwise_and(mask, cv2.bitwise_not(done[y0:y1, x0:x1]), dst=mask)
             if not cv2.countNonZero(mask):
@@ -384,22 +394,25 @@ class Renderer:
             cv2.copyTo(_scaled(sl, gq), mask, sl)
             cv2.bitwise_or(done[y0:y1, x0:x1], mask, dst=done[y0:y1, x0:x1])
 
-    def _sky(self, img: np.ndarray, zbuf: np.ndarray, R: np.ndarray, light: Lighting) -> None:
-        empty = ~np.isfinite(zbuf)
+    def _sky(self, img: np.ndarray, ibuf: np.ndarray, R: np.ndarray, light: Lighting) -> None:
+        empty = ibuf <= 0
         rows = np.nonzero(empty.any(axis=1))[0]
         if not len(rows):
             return
         hs = int(rows.max()) + 1
         pano = self.bank.levels(light.sky_tex)[0]
         ph, pw = pano.shape[:2]
+        my = self._sky_rows.get(ph)
+        if my is None:
+            my = np.clip(self._sky_el / self.sky_el_max * (ph - 1), 0, ph - 1).astype(np.float32)
+            self._sky_rows[ph] = my
         heading = math.atan2(R[1, 2], R[0, 2])
         mx = np.mod((heading + self._sky_az) * (pw / (2 * math.pi)), pw).astype(np.float32)
-        my = np.clip(self._sky_el[:hs] / self.sky_el_max * (ph - 1), 0, ph - 1).astype(np.float32)
         sky = cv2.remap(
             pano,
-            np.broadcast_to(mx[None, :], (hs, len(mx))).astype(np.float32),
-            my,
+            np.ascontiguousarray(np.broadcast_to(mx[None, :], (hs, len(mx)))),
+            my[:hs],
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_WRAP,
         )
-        np.copyto(img[:hs], sky, where=empty[:hs, :, None])
+        cv2.copyTo(sky, empty[:hs].view(np.uint8), img[:hs])

@@ -84,23 +84,26 @@ def _shade(c: tuple[int, int, int], f: float) -> tuple[int, int, int]:
 
 def value_noise(rng: Rng, h: int, w: int, cell: float, octaves: int = 3) -> np.ndarray:
     """Smooth multi-octave noise, (h, w) float32 with standard deviation about 1."""
-    out = np.zeros((h, w), np.float32)
+    # octaves are summed at half resolution (they are smooth), then scaled up once
+    hh, ww = max(2, (h + 1) // 2), max(2, (w + 1) // 2)
+    out = np.zeros((hh, ww), np.float32)
     amp, total = 1.0, 0.0
     for _ in range(octaves):
         gh = max(2, int(h / max(cell, 1.0)) + 2)
         gw = max(2, int(w / max(cell, 1.0)) + 2)
         small = rng.standard_normal((gh, gw)).astype(np.float32)
-        out += amp * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+        out += np.float32(amp) * cv2.resize(small, (ww, hh), interpolation=cv2.INTER_CUBIC)
         total += amp * amp
         amp *= 0.5
         cell /= 2.0
-    return out / np.float32(np.sqrt(total))
+    out *= np.float32(1.0 / np.sqrt(total))
+    return cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def _add_tone(img: np.ndarray, tone: np.ndarray) -> np.ndarray:
     """Add a (h, w) float brightness field to a colour image, saturating."""
-    out = img.astype(np.float32) + tone[..., None]
-    return np.clip(out, 0, 255).astype(np.uint8)
+    t = np.ascontiguousarray(tone, dtype=np.float32)
+    return cv2.add(img, cv2.cvtColor(t, cv2.COLOR_GRAY2BGR), dtype=cv2.CV_8U)
 
 
 def random_word(rng: Rng, lo: int = 3, hi: int = 9) -> str:
@@ -146,22 +149,24 @@ def _wall(rng: Rng, h: int, w: int, ppm: float, colour: tuple[int, int, int], ma
     if material in ("brick", "stone"):
         course = max(3, int(round((0.09 if material == "brick" else 0.32) * ppm)))
         length = max(6, int(round((0.25 if material == "brick" else 0.7) * ppm)))
-        ys, xs = np.mgrid[0:h, 0:w]
+        ys = np.arange(h, dtype=np.int32)[:, None]
+        xs = np.arange(w, dtype=np.int32)[None, :]
         row = ys // course
         shifted = xs + (row % 2) * (length // 2)
         col = shifted // length
-        per = rng.normal(0.0, 9.0 if material == "brick" else 6.0, (row.max() + 1, col.max() + 2))
-        tone = tone + per[row, col].astype(np.float32)
+        per = rng.normal(0.0, 9.0 if material == "brick" else 6.0, (h // course + 1, w // length + 2))
+        tone += per.astype(np.float32)[row, col]
         mortar = ((ys % course) == 0) | ((shifted % length) == 0)
-        tone = np.where(mortar, tone + (25.0 if material == "brick" else -22.0), tone).astype(np.float32)
+        tone[mortar] += np.float32(25.0 if material == "brick" else -22.0)
     elif material == "panel":
         pw = max(8, int(round(rng.uniform(1.0, 1.6) * ppm)))
         ph = max(8, int(round(rng.uniform(0.8, 1.5) * ppm)))
-        ys, xs = np.mgrid[0:h, 0:w]
+        ys = np.arange(h, dtype=np.int32)[:, None]
+        xs = np.arange(w, dtype=np.int32)[None, :]
         seam = ((xs % pw) == 0) | ((ys % ph) == 0)
         per = rng.normal(0.0, 5.0, (h // ph + 2, w // pw + 2))
-        tone = tone + per[ys // ph, xs // pw].astype(np.float32)
-        tone = np.where(seam, tone - 30.0, tone).astype(np.float32)
+        tone += per.astype(np.float32)[ys // ph, xs // pw]
+        tone[seam] -= np.float32(30.0)
     return _add_tone(img, tone)
 
 
@@ -573,22 +578,23 @@ def sidewalk(
     slab_w = rng.choice([0.3, 0.5, 0.6])
     slab_h = rng.choice([0.3, 0.5, 0.6])
     sw, sh = max(3, px(slab_w)), max(3, px(slab_h))
-    ys, xs = np.mgrid[0:h, 0:w]
+    ys = np.arange(h, dtype=np.int32)[:, None]
+    xs = np.arange(w, dtype=np.int32)[None, :]
     stagger = rng.random() < 0.5
     rowi = ys // sh
     xx = xs + (rowi % 2) * (sw // 2) * int(stagger)
     coli = xx // sw
-    per = rng.normal(0, 9.0, (rowi.max() + 1, coli.max() + 2)).astype(np.float32)
+    per = rng.normal(0, 9.0, (h // sh + 1, w // sw + 2)).astype(np.float32)
     # a few odd, replaced slabs
     odd = rng.random(per.shape) < 0.03
     per[odd] += rng.choice([-35.0, 30.0], size=int(odd.sum())).astype(np.float32)
     tone = (
         per[rowi, coli]
         + value_noise(rng, h, w, cell=2.0 * ppm) * 7.0
-        + rng.normal(0, 4.0, (h, w)).astype(np.float32)
+        + rng.standard_normal((h, w), dtype=np.float32) * np.float32(4.0)
     )
     joint = ((ys % sh) == 0) | ((xx % sw) == 0)
-    tone = np.where(joint, tone - 35.0, tone).astype(np.float32)
+    tone[joint] -= np.float32(35.0)
     img = np.empty((h, w, 3), np.uint8)
     img[:] = base
     img = _add_tone(img, tone)
@@ -663,8 +669,9 @@ def foliage(rng: Rng, width_m: float, height_m: float, ppm: float) -> np.ndarray
     cy = rng.integers(0, h, n)
     rr = rng.integers(1, max(2, int(0.12 * ppm)), n)
     shades = rng.uniform(0.55, 1.45, n)
-    for x, y, r, s in zip(cx.tolist(), cy.tolist(), rr.tolist(), shades.tolist(), strict=True):
-        cv2.circle(img, (x, y), r, _shade((int(base[0]), int(base[1]), int(base[2])), s), -1)
+    colours = np.clip(base[None, :] * shades[:, None], 0, 255).astype(int).tolist()
+    for x, y, r, c in zip(cx.tolist(), cy.tolist(), rr.tolist(), colours, strict=True):
+        cv2.circle(img, (x, y), r, c, -1)
     # a few branches showing through
     for _ in range(int(rng.integers(2, 6))):
         x0 = w // 2 + int(rng.normal(0, w * 0.05))
