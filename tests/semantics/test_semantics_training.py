@@ -94,3 +94,21 @@ def test_smoke_training_on_two_frames_and_resume(tmp_path: Path) -> None:
     assert [r["epoch"] for r in log] == [0, 1, 2]
     net = load_checkpoint(tmp_path / "run" / "best.pt")
     assert net.widths == (4, 8, 8, 16)
+
+
+def test_prior_correction_is_a_classifier_bias() -> None:
+    torch = pytest.importorskip("torch", reason="torch not installed (the train extra)")
+    from stablecues.semantics.model import BayesLiteSeg
+    from stablecues.semantics.release import apply_prior
+
+    torch.manual_seed(0)
+    net = BayesLiteSeg((4, 8, 8, 16)).eval()
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        before = net(x)
+    log_w = np.log(np.linspace(0.5, 4.0, 11))
+    apply_prior(net, 0.5, log_w)
+    with torch.no_grad():
+        after = net(x)
+    shift = torch.from_numpy((0.5 * log_w).astype(np.float32))[None, :, None, None]
+    torch.testing.assert_close(after, before - shift, atol=1e-5, rtol=0)

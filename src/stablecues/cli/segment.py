@@ -41,6 +41,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     x.add_argument("--data", required=True, help="CamVid folder for the evaluation in the metadata")
     x.add_argument("--default-t", type=int, default=None)
     x.add_argument("--command", default="", help="the training command, recorded in the metadata")
+    x.add_argument("--prior-alpha", type=float, default=None, help="prior correction (default: tuned on val)")
+    x.add_argument("--cache", default=None, help="folder of the decoded-split cache (e.g. runs/segnet/cache)")
 
     i = sub.add_parser("image", help="segment one image and draw classes, uncertainty and keypoints")
     i.add_argument("image", help="image file")
@@ -114,6 +116,8 @@ def _export(args: argparse.Namespace) -> int:
         args.data,
         default_t=args.default_t or DEFAULT_T,
         command=args.command or " ".join(shlex.quote(a) for a in sys.argv),
+        prior_alpha=args.prior_alpha,
+        cache_dir=args.cache,
     )
     print(json.dumps({k: meta[k] for k in ("onnx", "sha256", "input_size", "default_t")}))
     for key, m in meta["metrics"].items():
