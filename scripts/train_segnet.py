@@ -1,10 +1,12 @@
 #!/usr/bin/env python
-"""Remake the shipped segmentation weights: train on CamVid, then export with export_segnet.
+"""Remake the shipped segmentation weights: train on CamVid, then export, evaluate and describe.
 
-    python scripts/train_segnet.py --data ../shared/data/camvid --out runs/segnet --epochs 120
-    python scripts/train_segnet.py --data ../shared/data/camvid --out runs/segnet --epochs 120 --resume
+    python scripts/train_segnet.py --data ../shared/data/camvid --out runs/segnet --epochs 100 \
+        --export src/stablecues/data/segnet_camvid.onnx
+    # interrupted? the same command with --resume continues from runs/segnet/last.pt
 
-Same as ``stablecues segment train``. Needs the ``train`` extra (torch).
+Training alone is ``stablecues segment train``; the export step is ``stablecues segment export``.
+Needs the ``train`` extra (torch).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from stablecues.config import merge  # noqa: E402
+from stablecues.semantics.inference import DEFAULT_T  # noqa: E402
 from stablecues.semantics.train import TrainConfig, train  # noqa: E402
 
 
@@ -30,6 +33,8 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=TrainConfig.threads)
     p.add_argument("--seed", type=int, default=TrainConfig.seed)
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--export", default=None, help="after training, write the ONNX weights + metadata here")
+    p.add_argument("--default-t", type=int, default=DEFAULT_T)
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     config = merge(
@@ -46,6 +51,20 @@ def main() -> int:
     )
     result = train(config, resume=args.resume)
     print(result)
+    if args.export:
+        from stablecues.semantics.release import release
+
+        command = " ".join(a for a in sys.argv if a != "--resume")
+        meta = release(
+            Path(args.out) / "best.pt",
+            args.export,
+            args.data,
+            default_t=args.default_t,
+            cache_dir=Path(args.out) / "cache",
+            command=f"python {command}",
+        )
+        for key, m in meta["metrics"].items():
+            print(f"{key}: mIoU {100 * m['miou']:.2f} %, global {100 * m['global_acc']:.2f} %")
     return 0
 
 
