@@ -45,7 +45,8 @@ class SegmentationResult:
 
     Attributes:
         labels: (H, W) uint8 class id of the highest mean softmax (0..10, never void).
-        confidence: (H, W) float32 that highest mean softmax, in [0, 1].
+        confidence: (H, W) float32 highest mean softmax, in [0, 1] (interpolated from the
+            network's output resolution).
         uncertainty: (H, W) float32 model uncertainty (see the module docstring); zero for T = 1.
         samples: the number T of Monte-Carlo samples used.
         prob: (11, h, w) float32 mean softmax at the network's output resolution (1/4 of the
@@ -114,6 +115,9 @@ class SegmentationModel:
         if set(inputs) != {"image", "mask16", "mask8"}:
             raise ModelError(f"{path}: expected graph inputs image, mask16, mask8; found {sorted(inputs)}")
         self._channels = (int(inputs["mask16"][1]), int(inputs["mask8"][1]))
+        out_shape = session.get_outputs()[0].shape
+        if len(out_shape) != 4 or out_shape[1] != NUM_CLASSES:
+            raise ModelError(f"{path}: expected a (T, {NUM_CLASSES}, h, w) output, found {out_shape}")
         self._masks: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.class_names: tuple[str, ...] = tuple(meta.get("classes", CLASS_NAMES))
 
@@ -259,14 +263,12 @@ def summarize_samples(
     height, width = size
     hwc = np.ascontiguousarray(mean.transpose(1, 2, 0))
     up = cv2.resize(hwc, (width, height), interpolation=cv2.INTER_LINEAR)
-    if up.ndim == 2:  # a single class
-        up = up[:, :, None]
-    arg = up.argmax(axis=2)
-    confidence = np.take_along_axis(up, arg[:, :, None], axis=2)[:, :, 0].astype(np.float32)
-    labels = arg.astype(np.uint8)
-    unc_up = cv2.resize(unc, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    labels = (up.argmax(axis=2) if up.ndim == 3 else np.zeros(size, np.int64)).astype(np.uint8)
+    # the confidence map is interpolated from the output resolution (cheaper than a gather)
+    conf_low = np.ascontiguousarray(mean.max(axis=0))
+    confidence = cv2.resize(conf_low, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)
     if t == 1:
-        unc_up[:] = 0.0
-    if labels.max(initial=0) >= NUM_CLASSES:  # pragma: no cover - guards a mismatched graph
-        raise ModelError(f"network output has {mean.shape[0]} classes, expected {NUM_CLASSES}")
-    return SegmentationResult(labels, confidence, np.maximum(unc_up, 0.0), t, np.ascontiguousarray(mean))
+        unc_up = np.zeros(size, np.float32)
+    else:
+        unc_up = np.maximum(cv2.resize(unc, (width, height), interpolation=cv2.INTER_LINEAR), 0.0)
+    return SegmentationResult(labels, confidence, unc_up.astype(np.float32), t, np.ascontiguousarray(mean))
