@@ -215,6 +215,7 @@ class QuadBuilder:
         chunk_m: float | None = None,
         tex_offset_m: tuple[float, float] = (0.0, 0.0),
         obj: int = -1,
+        ppm_v: float | None = None,
     ) -> None:
         """Add a rectangle ``width_m`` along ``u_dir`` by ``height_m`` along ``v_dir`` from ``top_left``.
 
@@ -222,13 +223,15 @@ class QuadBuilder:
         texture). ``chunk_m`` splits the rectangle along ``u_dir`` into pieces no longer than that,
         which keeps screen bounding boxes tight and lets each piece choose its own mip level near
         the camera; the whole rectangle is kept too, drawn instead of its pieces when far away.
+        ``ppm_v`` sets a different resolution along ``v_dir`` (a texture stretched one way).
         """
+        pv = ppm if ppm_v is None else ppm_v
         u = np.asarray(u_dir, float) / ppm
-        v = np.asarray(v_dir, float) / ppm
+        v = np.asarray(v_dir, float) / pv
         ox, oy = tex_offset_m
-        origin = np.asarray(top_left, float) - ox * ppm * u - oy * ppm * v
+        origin = np.asarray(top_left, float) - ox * ppm * u - oy * pv * v
         n = 1 if not chunk_m else max(1, math.ceil(width_m / chunk_m - 1e-9))
-        whole = (ox * ppm, oy * ppm, (ox + width_m) * ppm, (oy + height_m) * ppm)
+        whole = (ox * ppm, oy * pv, (ox + width_m) * ppm, (oy + height_m) * pv)
         if n == 1:
             self._rows.append((origin, u, v, whole, tex, label, two_sided, lit, obj, LOD_ALWAYS, -1))
             return
@@ -236,7 +239,7 @@ class QuadBuilder:
         self._rows.append((origin, u, v, whole, tex, label, two_sided, lit, obj, LOD_WHOLE, parent))
         edges = np.linspace(0.0, width_m, n + 1)
         for a, b in zip(edges[:-1], edges[1:], strict=True):
-            rect = ((ox + a) * ppm, oy * ppm, (ox + b) * ppm, (oy + height_m) * ppm)
+            rect = ((ox + a) * ppm, oy * pv, (ox + b) * ppm, (oy + height_m) * pv)
             self._rows.append((origin, u, v, rect, tex, label, two_sided, lit, obj, LOD_PIECE, parent))
 
     def build(self, static: bool) -> QuadSet:

@@ -234,7 +234,8 @@ class SyntheticTown:
             pos = mv.positions(t)
             d = pos - C
             flat = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
-            keep = (flat > 3.0) & (flat < min(far, 120.0))
+            # objects never run into the camera: one that would hold it is left out
+            keep = (flat < min(far, 120.0)) & ~mv.contains(t, C)
             keep[keep] &= np.isin(
                 np.arange(len(mv))[keep],
                 cull(

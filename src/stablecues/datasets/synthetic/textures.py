@@ -322,7 +322,7 @@ def facade(
             ux1 = (u + 1) * uw - 0.3
             sign_bg = _col(rng, CAR_COLOURS + FRAME_COLOURS, 10)
             sign_fg = (255, 255, 255) if sum(sign_bg) < 380 else (20, 20, 20)
-            sy1, sy0 = row(gf - 0.25), row(gf - 0.25 - rng.uniform(0.5, 0.8))
+            sy0, sy1 = row(gf - 0.25), row(gf - 0.25 - rng.uniform(0.5, 0.8))
             ys0, ys1 = row(gf - 0.95), row(0.35)
             door_w = rng.uniform(1.0, 1.4)
             door_left = rng.random() < 0.5

@@ -100,7 +100,7 @@ class Movers:
 
     ``position(t) = start + direction * ((s0 + speed * t) mod length)``; the object's local x axis
     points along ``direction``, y to its left, z up. ``quads`` are in that local frame, with
-    ``obj`` naming the object.
+    ``obj`` naming the object; ``half`` (K, 2) holds each footprint's half length and half width.
     """
 
     start: np.ndarray
@@ -109,9 +109,18 @@ class Movers:
     s0: np.ndarray
     speed: np.ndarray
     quads: QuadSet
+    half: np.ndarray
 
     def __len__(self) -> int:
         return int(self.start.shape[0])
+
+    def contains(self, t: float, point: np.ndarray, margin: float = 0.4) -> np.ndarray:
+        """(K,) bool: objects whose footprint (grown by ``margin``) holds ``point`` (x, y) at time t."""
+        d = np.asarray(point, float)[:2] - self.positions(t)[:, :2]
+        fwd = self.direction[:, :2]
+        along = np.abs((d * fwd).sum(axis=1))
+        across = np.abs(d[:, 0] * fwd[:, 1] - d[:, 1] * fwd[:, 0])
+        return (along < self.half[:, 0] + margin) & (across < self.half[:, 1] + margin)
 
     def positions(self, t: float) -> np.ndarray:
         """(K, 3) positions at lap time ``t`` seconds."""
@@ -634,6 +643,7 @@ class Town:
         lengths: list[float] = []
         s0s: list[float] = []
         speeds: list[float] = []
+        halves: list[tuple[float, float]] = []
         b = QuadBuilder()
 
         def add(start: np.ndarray, d: np.ndarray, length: float, s0: float, speed: float) -> int:
@@ -642,6 +652,7 @@ class Town:
             lengths.append(length)
             s0s.append(s0)
             speeds.append(speed)
+            halves.append((0.5, 0.5))
             return len(starts) - 1
 
         if c > 0:
@@ -671,7 +682,7 @@ class Town:
                                     else np.array([centre_s, pos, 0.0])
                                 ) + r * PARK_LANE
                                 k = add(p, d, 1.0, 0.0, 0.0)
-                                self._car(b, k, rng, lap)
+                                halves[k] = self._car(b, k, rng, lap)
                             s += 6.0
                     if (axis, idx, sgn) in camera_lanes:
                         continue
@@ -683,7 +694,7 @@ class Town:
                             float(rng.uniform(0, line_len)),
                             float(rng.uniform(6.0, 11.0)),
                         )
-                        self._car(b, k, rng, lap)
+                        halves[k] = self._car(b, k, rng, lap)
                     for _ in range(int(rng.poisson(line_len / 200.0 * c))):
                         k = add(
                             origin + r * (ROAD_HALF - PARKING - 0.6),
@@ -692,7 +703,7 @@ class Town:
                             float(rng.uniform(0, line_len)),
                             float(rng.uniform(3.5, 6.0)),
                         )
-                        self._cyclist(b, k, rng, lap)
+                        halves[k] = self._cyclist(b, k, rng, lap)
             for si, side in enumerate(self.sides):
                 for _ in range(int(rng.poisson(side.length / 10.0 * c))):
                     fwd = rng.random() < 0.5
@@ -702,16 +713,22 @@ class Town:
                         start = start + side.u * side.length
                     speed = 0.0 if rng.random() < 0.2 else float(rng.uniform(0.8, 1.6))
                     k = add(start, d, side.length, float(rng.uniform(0.5, side.length - 0.5)), speed)
-                    self._person(b, k, rng, (lap, si))
+                    halves[k] = self._person(b, k, rng, (lap, si))
         quads = b.build(static=False)
         if not starts:
             z = np.zeros((0, 3))
-            return Movers(z, z, np.zeros(0), np.zeros(0), np.zeros(0), quads)
+            return Movers(z, z, np.zeros(0), np.zeros(0), np.zeros(0), quads, np.zeros((0, 2)))
         return Movers(
-            np.array(starts), np.array(dirs), np.array(lengths), np.array(s0s), np.array(speeds), quads
+            np.array(starts),
+            np.array(dirs),
+            np.array(lengths),
+            np.array(s0s),
+            np.array(speeds),
+            quads,
+            np.array(halves, float),
         )
 
-    def _car(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> None:
+    def _car(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> tuple[float, float]:
         L = float(rng.uniform(3.9, 4.8))
         W = float(rng.uniform(1.7, 1.9))
         H = float(rng.uniform(1.4, 1.6))
@@ -729,8 +746,11 @@ class Town:
         vertical_quad(b, np.array([L / 2, -W / 2, 0]), y, W, 0.0, H, front, PPM_CAR, CAR, obj=k)
         vertical_quad(b, np.array([-L / 2, W / 2, 0]), -y, W, 0.0, H, back, PPM_CAR, CAR, obj=k)
         b.add(np.array([L / 2 - 1.55, -W / 2 + 0.35, H]), -x, y, 1.9, W - 0.7, roof, PPM_CAR, CAR, obj=k)
+        return L / 2, W / 2
 
-    def _person(self, b: QuadBuilder, k: int, rng: np.random.Generator, key: tuple[int, int]) -> None:
+    def _person(
+        self, b: QuadBuilder, k: int, rng: np.random.Generator, key: tuple[int, int]
+    ) -> tuple[float, float]:
         h = float(rng.uniform(1.55, 1.9))
         tex = self.bank.register(tx.pedestrian, h, PPM_PED, seed=(self.seed, K_LAP, *key, 5000 + k))
         x, y = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
@@ -748,9 +768,11 @@ class Town:
             PEDESTRIAN,
             two_sided=True,
             obj=k,
+            ppm_v=PPM_PED,
         )
+        return 0.3, 0.3
 
-    def _cyclist(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> None:
+    def _cyclist(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> tuple[float, float]:
         key = (self.seed, K_LAP, lap, 8000 + k)
         side = self.bank.register(tx.bicyclist, PPM_PED, seed=key)
         front = self.bank.register(tx.pedestrian, 1.75, PPM_PED, seed=key)
@@ -769,7 +791,9 @@ class Town:
             BICYCLIST,
             two_sided=True,
             obj=k,
+            ppm_v=PPM_PED,
         )
+        return 0.9, 0.3
 
     def lap_decals(self, light: Lighting) -> Decals:
         """Cast shadows of buildings (on the ground and the facades across the street) and props."""
