@@ -39,6 +39,7 @@ logger = logging.getLogger(__name__)
 SKY_SIZE = (2048, 320)  # panorama width (360 degrees) and height (40 degrees)
 LOD_NEAR = 30.0  # metres: long quads nearer than this are drawn in pieces
 SHADOW_FAR = 90.0  # metres: cast shadows beyond this are not drawn
+VISIBILITY_FAR = 100.0  # metres: landmarks beyond this do not count for the loop ground truth
 
 
 @dataclass
@@ -345,7 +346,7 @@ class SyntheticTown:
 
         Computed from the geometry, not by rendering: a landmark piece (building, tree, pole,
         sign or fence quad, long ones in 4 m pieces) counts when it lies in the view frustum
-        within ``max_depth``, faces the camera, and is not hidden behind a block
+        within 100 m, faces the camera, and is not hidden behind a block
         (:meth:`Town.occluded`); its weight is its projected area in pixels (corners clamped
         to the image). Nearer objects of the same street side may still hide parts of it.
         """
@@ -357,13 +358,14 @@ class SyntheticTown:
         normals = town.static_normal[cand]
         two = st.two_sided[cand]
         cam = self.intrinsics
+        far = min(cfg.max_depth, VISIBILITY_FAR)
         frames = frames if frames is not None else range(len(self))
         ids: list[np.ndarray] = []
         weights: list[np.ndarray] = []
         for i in frames:
             R = self.poses[i, :3, :3]
             C = self.poses[i, :3, 3]
-            k = cull(R, C, town.static_centre[cand], town.static_radius[cand], cam, cfg.max_depth)
+            k = cull(R, C, town.static_centre[cand], town.static_radius[cand], cam, far)
             facing = two[k] | ((normals[k] * (C - corners_all[k, 0])).sum(axis=1) > 0)
             k = k[facing]
             pc = (corners_all[k] - C) @ R

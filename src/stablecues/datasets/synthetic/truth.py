@@ -131,18 +131,19 @@ def loop_truth(
         raise InputError("loop_truth: opposite='covisible' needs the frames' visibility")
     if len(visibility.ids) != n:
         raise InputError(f"loop_truth: visibility of {n} frames expected, got {len(visibility.ids)}")
-    dpos = positions[:, None, :2] - positions[None, :, :2]
-    dist = np.sqrt((dpos**2).sum(axis=2))
-    dyaw = np.abs((headings[:, None] - headings[None, :] + math.pi) % (2 * math.pi) - math.pi)
-    idx = np.arange(n)
-    cand = (
-        (dist <= config.max_covisible_distance)
-        & (dyaw > math.radians(config.max_angle_deg))
-        & (idx[:, None] - idx[None, :] >= config.min_gap_frames)
-    )
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(positions[:, :2]).query_pairs(config.max_covisible_distance, output_type="ndarray")
+    if not len(pairs):
+        return gt
+    i_all = pairs.max(axis=1)
+    j_all = pairs.min(axis=1)
+    dyaw = np.abs((headings[i_all] - headings[j_all] + math.pi) % (2 * math.pi) - math.pi)
+    keep = (dyaw > math.radians(config.max_angle_deg)) & (i_all - j_all >= config.min_gap_frames)
+    cand_i, cand_j = i_all[keep], j_all[keep]
     cos_lim = math.cos(math.radians(config.max_view_angle_deg))
     totals = np.array([float(c.sum()) for c in visibility.counts])
-    for i, j in zip(*np.nonzero(cand), strict=True):
+    for i, j in zip(cand_i.tolist(), cand_j.tolist(), strict=True):
         if totals[i] <= 0 or totals[j] <= 0:
             continue
         common, ai, aj = np.intersect1d(
