@@ -73,9 +73,11 @@ def orb_check(town: SyntheticTown) -> dict[str, float]:
         loop_m.append(good(int(i), j))
         other_m.append(good(int(i), k))
     n_kp = [len(feats(int(i))[0]) for i in list(cache)[:20]]
+    lm, om = np.array(loop_m), np.array(other_m)
     return {
         "orb_keypoints_per_frame_mean": float(np.mean(n_kp)) if n_kp else 0.0,
         "revisit_pairs": len(loop_m),
+        "revisit_beats_unrelated_fraction": float(np.mean(lm > om)) if len(lm) else 0.0,
         "revisit_good_matches_median": float(np.median(loop_m)) if loop_m else 0.0,
         "unrelated_good_matches_median": float(np.median(other_m)) if other_m else 0.0,
         "loop_queries": int(gt.any(axis=1).sum()),
@@ -116,6 +118,9 @@ def main() -> None:
         out["write_sequence_300_384x288_s"] = time.perf_counter() - t0
         print(f"write_sequence 300 frames 384x288: {out['write_sequence_300_384x288_s']:.1f} s")
     town = SyntheticTown(SyntheticTownConfig(frames=300, width=512, height=384, seed=1))
+    t0 = time.perf_counter()
+    town.ground_truth()
+    out["ground_truth_300_frames_s"] = time.perf_counter() - t0
     orb = orb_check(town)
     out.update(orb)
     print("ORB:", json.dumps(orb))

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from .scene import LANDMARK_CLASSES, SKY, Lighting, QuadSet, TextureBank
+from .scene import SKY, Lighting, QuadSet, TextureBank
 from .town import Decals
 
 
@@ -44,6 +45,16 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
 
+class _Screen(NamedTuple):
+    """Where candidate quads land on screen (see :meth:`Renderer._screen_all`)."""
+
+    ok: np.ndarray
+    box: np.ndarray
+    zmin: np.ndarray
+    poly: np.ndarray
+    clipped: dict[int, np.ndarray]
+
+
 @dataclass
 class View:
     """One rendered view.
@@ -52,14 +63,12 @@ class View:
         image: (H, W, 3) uint8 BGR.
         depth: (H, W) float32 metres along the optical axis, 0 where nothing is (sky).
         labels: (H, W) uint8 CamVid ids, or None when not asked for.
-        inst: (H, W) int32 static visibility id + 1 per pixel (0: sky or a moving object), or None.
         levels: (M,) int8 mip level used per candidate quad (-1: not drawn), to reuse in a stereo pair.
     """
 
     image: np.ndarray
     depth: np.ndarray
     labels: np.ndarray | None
-    inst: np.ndarray | None
     levels: np.ndarray
 
 
@@ -87,9 +96,8 @@ def cull(
     return np.nonzero(keep)[0]
 
 
-def _scaled(img: np.ndarray, gain: np.ndarray) -> np.ndarray:
-    """A uint8 BGR or BGRA image with its colour channels multiplied by ``gain`` (3,), saturating."""
-    scalar = (float(gain[0]), float(gain[1]), float(gain[2]), 1.0)
+def _multiply(img: np.ndarray, scalar: tuple[float, ...]) -> np.ndarray:
+    """``img`` times a per-channel scalar (4 values), saturating."""
     return cv2.multiply(img, scalar)  # type: ignore[call-overload]
 
 
@@ -108,8 +116,11 @@ def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
     return np.array(out) if out else np.zeros((0, 3))
 
 
+NEAR_TEST = 1.0 / 6.0  # quads nearer than 6 m skip the "already hidden" test (inverse metres)
+
+
 class Renderer:
-    """Renders quads seen by a camera into colour, depth, labels and a visibility-id image.
+    """Renders quads seen by a camera into colour, depth and label images.
 
     Args:
         cam: intrinsics (also fixes the image size).
@@ -136,6 +147,7 @@ class Renderer:
         self._label_planes = [np.full((H, W), k, np.uint8) for k in range(12)]
         self._sky_rows: dict[int, np.ndarray] = {}
         self._noise: dict[float, np.ndarray] = {}
+        self._alpha_cache: dict[int, np.ndarray] = {}
 
     # ------------------------------------------------------------------ geometry per quad
 
@@ -156,7 +168,7 @@ class Renderer:
         Hm = np.einsum("ij,mjk->mik", self.K, np.stack([uc, vc, oc], axis=2))
         return {"pc": pc, "d": d, "abc": abc, "H": Hm}
 
-    def _screen_all(self, pc: np.ndarray, cand: np.ndarray) -> dict[str, np.ndarray | dict[int, np.ndarray]]:
+    def _screen_all(self, pc: np.ndarray, cand: np.ndarray) -> _Screen:
         """Screen polygons, clamped bounding boxes and nearest depths of camera-frame quads (M, 4, 3).
 
         Quads crossing the near plane are clipped (Sutherland-Hodgman), one by one; the others
@@ -202,13 +214,7 @@ class Renderer:
                 np.ceil(np.nan_to_num(hi[:, 1], nan=-1.0, posinf=1e9, neginf=-1e9)) + 1, 0, cam.height
             )
         ok &= (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
-        return {"ok": ok, "box": box, "zmin": zmin, "poly": poly, "clipped": clipped}
-
-    def _inv_depth(self, abc: np.ndarray, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        """Inverse depth (float32, 1/metres) over a box, of the plane with coefficients ``abc``."""
-        return cv2.addWeighted(
-            self.gx[y0:y1, x0:x1], float(abc[0]), self.gy[y0:y1, x0:x1], float(abc[1]), float(abc[2])
-        )
+        return _Screen(ok, box, zmin, poly, clipped)
 
     # ------------------------------------------------------------------ main entry
 
@@ -235,7 +241,7 @@ class Renderer:
             normals: (M, 3) their unit front normals.
             light: the lap's lighting (shading gains and the sky).
             decals: cast shadows that may be in view (culled by the caller), or None.
-            labels: also produce the label and visibility-id images.
+            labels: also produce the label image.
             levels: (M,) mip levels to use (from the other view of a stereo pair), -1 = choose.
             noise: standard deviation of added sensor noise, grey levels (0: none).
             noise_rng: generator for the noise.
@@ -245,30 +251,18 @@ class Renderer:
         img = np.zeros((H, W, 3), np.uint8)
         ibuf = np.zeros((H, W), np.float32)  # inverse depth: 0 where nothing is (the sky)
         lab = np.full((H, W), SKY, np.uint8) if labels else None
-        inst = np.zeros((H, W), np.int32) if labels else None
         m_count = len(quads)
         lv = np.full(m_count, -1, np.int8) if levels is None else levels.copy()
         if m_count:
             g = self._prepare(quads, R, C, normals)
             facing = g["d"] < 0.0  # camera on the front side of the plane
-            scr = self._screen_all(g["pc"], quads.two_sided | facing)
-            ok, box, zmin, poly, clipped = scr["ok"], scr["box"], scr["zmin"], scr["poly"], scr["clipped"]
-            assert (
-                isinstance(clipped, dict)
-                and isinstance(box, np.ndarray)
-                and isinstance(zmin, np.ndarray)
-                and isinstance(poly, np.ndarray)
-                and isinstance(ok, np.ndarray)
-            )
+            ok, box, zmin, poly, clipped = self._screen_all(g["pc"], quads.two_sided | facing)
             eff_n = np.where(facing[:, None], normals, -normals)
             gains = light.gains(eff_n, quads.lit)
             texel = np.linalg.norm(quads.u, axis=1)
             with np.errstate(divide="ignore"):
                 auto = np.floor(np.log2(np.maximum(np.maximum(zmin, self.near) / cam.fx / texel, 1e-9)) + 0.3)
             lv = np.where(lv < 0, np.clip(auto, 0, 6), lv).astype(np.int8)
-            ids = np.where(
-                (quads.vis >= 0) & np.isin(quads.label, LANDMARK_CLASSES), quads.vis + 1, 0
-            ).astype(np.int32)
             order = np.nonzero(ok)[0]
             order = order[np.argsort(zmin[order], kind="stable")]
             # texel -> bounding-box pixel homographies at the chosen level, all at once
@@ -280,50 +274,58 @@ class Renderer:
             Hs[:, 1, :] -= box[:, 1:2] * Hs[:, 2, :]
             with np.errstate(invalid="ignore"):
                 pts16 = np.round((poly - box[:, None, :2]) * 16.0).astype(np.int32)
-            abc = g["abc"]
-            izmax = 1.0 / np.maximum(zmin, self.near)
+            # plain Python values for the loop (numpy scalar indexing is slow)
+            boxes = box.tolist()
+            izmax = (1.0 / np.maximum(zmin, self.near)).tolist()
+            abcs = g["abc"].tolist()
+            gain_l = [(g0, g1, g2, 1.0) for g0, g1, g2 in gains.tolist()]
+            tex_l = quads.tex.tolist()
+            lab_l = quads.label.tolist()
+            lv_l = lv.tolist()
             for qi in order.tolist():
-                x0, y0, x1, y1 = box[qi].tolist()
+                x0, y0, x1, y1 = boxes[qi]
                 ib = ibuf[y0:y1, x0:x1]
-                if ib.min() > izmax[qi]:
-                    continue  # hidden behind what is already drawn
-                pyramid = self.bank.levels(int(quads.tex[qi]))
+                # hidden behind what is already drawn? (near quads rarely are: skip the test)
+                if izmax[qi] < NEAR_TEST and ib.min() > izmax[qi]:
+                    continue
+                pyramid = self.bank.levels(tex_l[qi])
+                level = lv_l[qi]
                 Hm = Hs[qi]
-                if lv[qi] >= len(pyramid):  # a small texture has fewer levels
-                    lv[qi] = len(pyramid) - 1
+                if level >= len(pyramid):  # a small texture has fewer levels
+                    level = len(pyramid) - 1
+                    lv[qi] = level
                     Hm = g["H"][qi].copy()
-                    Hm[:, :2] *= float(1 << int(lv[qi]))
+                    Hm[:, :2] *= float(1 << level)
                     Hm[0] -= x0 * Hm[2]
                     Hm[1] -= y0 * Hm[2]
                 bw, bh = x1 - x0, y1 - y0
                 warped = cv2.warpPerspective(
-                    pyramid[lv[qi]], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                    pyramid[level], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
                 )
                 mask = np.zeros((bh, bw), np.uint8)
                 pp = clipped.get(qi)
                 pts = pts16[qi] if pp is None else np.round((pp - (x0, y0)) * 16.0).astype(np.int32)
                 cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
-                iz = self._inv_depth(abc[qi], y0, y1, x0, x1)
+                a_, b_, c_ = abcs[qi]
+                iz = cv2.addWeighted(self.gx[y0:y1, x0:x1], a_, self.gy[y0:y1, x0:x1], b_, c_)
                 cv2.bitwise_and(mask, cv2.compare(iz, ib, cv2.CMP_GT), dst=mask)
-                gq = gains[qi]
                 if warped.shape[2] == 4:
                     opaque = cv2.threshold(cv2.extractChannel(warped, 3), 127, 255, cv2.THRESH_BINARY)[1]
                     cv2.bitwise_and(mask, opaque, dst=mask)
-                    col = cv2.cvtColor(_scaled(warped, gq), cv2.COLOR_BGRA2BGR)
+                    col = cv2.cvtColor(_multiply(warped, gain_l[qi]), cv2.COLOR_BGRA2BGR)
                 else:
-                    col = _scaled(warped, gq)
+                    col = _multiply(warped, gain_l[qi])
                 cv2.copyTo(iz, mask, ib)
                 cv2.copyTo(col, mask, img[y0:y1, x0:x1])
-                if lab is not None and inst is not None:
-                    cv2.copyTo(self._label_planes[quads.label[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
-                    cv2.copyTo(np.full((bh, bw), ids[qi], np.int32), mask, inst[y0:y1, x0:x1])
+                if lab is not None:
+                    cv2.copyTo(self._label_planes[lab_l[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
         if decals is not None and len(decals.quads):
             self._shadows(img, ibuf, R, C, decals)
         self._sky(img, ibuf, R, light)
         if noise > 0:
             self._add_noise(img, noise, noise_rng if noise_rng is not None else np.random.default_rng(0))
         depth = np.divide(np.float32(1.0), ibuf, out=np.zeros_like(ibuf), where=ibuf > 0)
-        return View(img, depth, lab, inst, lv)
+        return View(img, depth, lab, lv)
 
     def _add_noise(self, img: np.ndarray, sigma: float, rng: np.random.Generator) -> None:
         """Add Gaussian sensor noise in place: a window of a fixed noise field, placed by ``rng``."""
@@ -345,54 +347,56 @@ class Renderer:
         H, W = cam.height, cam.width
         sub = decals.quads
         g = self._prepare(sub, R, C, decals.normal)
-        scr = self._screen_all(g["pc"], g["d"] < 0.0)  # the camera must be on the lit side
-        ok, box, poly, clipped = scr["ok"], scr["box"], scr["poly"], scr["clipped"]
-        assert (
-            isinstance(clipped, dict)
-            and isinstance(box, np.ndarray)
-            and isinstance(poly, np.ndarray)
-            and isinstance(ok, np.ndarray)
-        )
+        ok, box, _, poly, clipped = self._screen_all(g["pc"], g["d"] < 0.0)  # camera on the lit side
         done = np.zeros((H, W), np.uint8)
         tol_rel, tol_abs = np.float32(2e-4), np.float32(2e-3)
+        boxes = box.tolist()
+        abcs = g["abc"].tolist()
+        alpha_l = decals.alpha.tolist()
+        tex_l = sub.tex.tolist()
+        gain_l = [(g0, g1, g2, 1.0) for g0, g1, g2 in decals.gain.tolist()]
         for k in np.nonzero(ok)[0].tolist():
-            x0, y0, x1, y1 = box[k].tolist()
+            x0, y0, x1, y1 = boxes[k]
             bw, bh = x1 - x0, y1 - y0
             mask = np.zeros((bh, bw), np.uint8)
             pp = clipped.get(k)
-            cv2.fillConvexPoly(
-                mask,
-                np.round(((poly[k] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32),
-                255,
-                lineType=cv2.LINE_8,
-                shift=4,
-            )
-            iz = self._inv_depth(g["abc"][k], y0, y1, x0, x1)
+            pts = np.round(((poly[k] if pp is None else pp) - (x0, y0)) * 16.0).astype(np.int32)
+            cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+            a_, b_, c_ = abcs[k]
+            iz = cv2.addWeighted(self.gx[y0:y1, x0:x1], a_, self.gy[y0:y1, x0:x1], b_, c_)
             ib = ibuf[y0:y1, x0:x1]
             # on the receiving surface: |depth difference| <= tol_rel * z + tol_abs, in inverse depth
             tol = iz * (tol_rel + tol_abs * iz)
-            on = cv2.compare(cv2.absdiff(ib, iz), tol, cv2.CMP_LE)
-            cv2.bitwise_and(mask, on, dst=mask)
+            cv2.bitwise_and(mask, cv2.compare(cv2.absdiff(ib, iz), tol, cv2.CMP_LE), dst=mask)
             cv2.bitwise_and(mask, cv2.bitwise_not(done[y0:y1, x0:x1]), dst=mask)
             if not cv2.countNonZero(mask):
                 continue
-            if decals.alpha[k]:
-                tex = self.bank.levels(int(sub.tex[k]))[0]
+            if alpha_l[k]:
                 Hm = g["H"][k].copy()
                 Hm[0] -= x0 * Hm[2]
                 Hm[1] -= y0 * Hm[2]
                 alpha = cv2.warpPerspective(
-                    cv2.extractChannel(tex, 3),
+                    self._alpha(tex_l[k]),
                     Hm,
                     (bw, bh),
                     flags=cv2.INTER_NEAREST,
                     borderMode=cv2.BORDER_CONSTANT,
                 )
-                cv2.bitwise_and(mask, cv2.threshold(alpha, 127, 255, cv2.THRESH_BINARY)[1], dst=mask)
-            gq = decals.gain[k]
+                cv2.bitwise_and(mask, alpha, dst=mask)
             sl = img[y0:y1, x0:x1]
-            cv2.copyTo(_scaled(sl, gq), mask, sl)
+            cv2.copyTo(_multiply(sl, gain_l[k]), mask, sl)
             cv2.bitwise_or(done[y0:y1, x0:x1], mask, dst=done[y0:y1, x0:x1])
+
+    def _alpha(self, tex_id: int) -> np.ndarray:
+        """The cut-out mask (0 or 255) of a BGRA texture at level 0, cached."""
+        hit = self._alpha_cache.get(tex_id)
+        if hit is None:
+            tex = self.bank.levels(tex_id)[0]
+            hit = cv2.threshold(cv2.extractChannel(tex, 3), 127, 255, cv2.THRESH_BINARY)[1]
+            if len(self._alpha_cache) > 4096:
+                self._alpha_cache.clear()
+            self._alpha_cache[tex_id] = hit
+        return hit
 
     def _sky(self, img: np.ndarray, ibuf: np.ndarray, R: np.ndarray, light: Lighting) -> None:
         empty = ibuf <= 0

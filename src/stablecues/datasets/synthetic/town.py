@@ -220,9 +220,8 @@ class Town:
         self.sides: list[Side] = []
         self._occluders: list[tuple[float, float, float, float, float]] = []  # x0, y0, x1, y1, height
         self._wall_heights: list[float] = []
-        self._casters: list[
-            tuple[np.ndarray, np.ndarray, float, float, np.ndarray]
-        ] = []  # (top-left, u, width, height, n)
+        # building fronts that cast shadows: (top-left, u, width, height, n, facade across the street)
+        self._casters: list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray, bool]] = []
         self._prop_casters = QuadBuilder()  # trunks, canopies and poles, for their shadows
         b = QuadBuilder()
         self._build_blocks(b)
@@ -337,7 +336,7 @@ class Town:
             else:
                 tex = self.bank.register(tx.facade, w, h, PPM_FACADE, seed=(self.seed, K_FACADE, i, j, k, bi))
                 vertical_quad(b, p0, side.u, w, 0.0, h, tex, PPM_FACADE, BUILDING, chunk_m=CHUNK)
-                self._casters.append((np.array([p0[0], p0[1], h]), side.u, w, h, side.n))
+                self._casters.append((np.array([p0[0], p0[1], h]), side.u, w, h, side.n, True))
                 side.buildings.append((s, s + w, float(h)))
                 self._wall_heights.append(float(h))
             s += w
@@ -573,7 +572,7 @@ class Town:
                 vertical_quad(
                     b, centre - u * half, u, 2 * half, 0.0, h, tex, PPM_FACADE, BUILDING, chunk_m=CHUNK
                 )
-                self._casters.append((np.array([*(centre - u * half)[:2], h]), u, 2 * half, h, n))
+                self._casters.append((np.array([*(centre - u * half)[:2], h]), u, 2 * half, h, n, False))
 
     def occluded(
         self, corners: np.ndarray, cameras: list[np.ndarray], skip_within: float = 10.0
@@ -810,13 +809,13 @@ class Town:
         def project(point: np.ndarray, q0: np.ndarray, m: np.ndarray) -> np.ndarray:
             return point - s * (float((point - q0) @ m) / float(s @ m))
 
-        for top_left, u, w, h, n in self._casters:
+        for top_left, u, w, h, n, across in self._casters:
             if float(n @ s) >= 0.0:  # facing the sun: its shadow falls behind it, out of sight
                 continue
-            for q0, m in (
-                (np.zeros(3), ground_n),
-                (top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK, -n),
-            ):
+            receivers = [(np.zeros(3), ground_n)]
+            if across:
+                receivers.append((top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK, -n))
+            for q0, m in receivers:
                 if float(s @ m) <= 1e-3:
                     continue
                 tl = project(top_left, q0, m)
@@ -875,12 +874,3 @@ def _sign_back_of_plate(rng: np.random.Generator, size: float, ppm: float) -> np
 def grid_size_for(route_blocks: tuple[int, int]) -> tuple[int, int]:
     """Blocks of the town around a route rectangle of ``route_blocks``: room for detours and an edge."""
     return route_blocks[0] + 4, route_blocks[1] + 4
-
-
-def mean_block() -> float:
-    """Mean street spacing in metres (for planning the route length)."""
-    return 46.0
-
-
-def block_perimeter_estimate(w: int, h: int) -> float:
-    return 2.0 * (w + h) * mean_block()
