@@ -259,9 +259,14 @@ class Renderer:
             ok, box, zmin, poly, clipped = self._screen_all(g["pc"], quads.two_sided | facing)
             eff_n = np.where(facing[:, None], normals, -normals)
             gains = light.gains(eff_n, quads.lit)
+            # mip level: texels per pixel at the quad's nearest point, between the footprint
+            # across the view and the (longer) one along a surface seen at a grazing angle
+            # (geometric mean; warpPerspective has no anisotropic filtering)
             texel = np.linalg.norm(quads.u, axis=1)
+            zn = np.maximum(zmin, self.near)
+            grazing = np.clip(np.abs(g["d"]) / zn, 0.05, 1.0)
             with np.errstate(divide="ignore"):
-                auto = np.floor(np.log2(np.maximum(np.maximum(zmin, self.near) / cam.fx / texel, 1e-9)) + 0.3)
+                auto = np.floor(np.log2(np.maximum(zn / cam.fx / texel / np.sqrt(grazing), 1e-9)) + 0.3)
             lv = np.where(lv < 0, np.clip(auto, 0, 6), lv).astype(np.int8)
             order = np.nonzero(ok)[0]
             order = order[np.argsort(zmin[order], kind="stable")]
