@@ -78,6 +78,8 @@ def run_dataset(
                 "score_column": "geometric inliers + normalised BoW score"
                 if config.confidence == "inliers" and config.verification is not None
                 else "normalised BoW score",
+                "semantics": "no masking" if config.masking is None or config.masking.mode == "none"
+                else f"{config.masking.mode} mask from the {config.semantic_source}",
                 **(meta or {})}
     writer = RunWriter(out, to_dict(config), run_meta, stages=STAGES,
                        mode="resume" if resume else "overwrite")

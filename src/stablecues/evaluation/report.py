@@ -201,6 +201,9 @@ def build_report(
             ["frames", len(run)],
             ["complete", "yes" if run.complete else "no (interrupted)"],
         ]
+        for key in ("semantics", "score_column"):  # recorded by stablecues run / demo
+            if run.meta.get(key):
+                meta.append([key.replace("_", " "), run.meta[key]])
         parts.append(_table(["", ""], meta, left=2))
         parts.append(_matrices_section(run, doc, gt_cache))
         timing = run.timings()
