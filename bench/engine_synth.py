@@ -53,17 +53,24 @@ def synthetic_vocabulary(k: int = 10, levels: int = 6, seed: int = 0) -> Vocabul
 class EntryMaker:
     """Descriptor sets 'drawn around the vocabulary's leaves', like a camera driving along.
 
-    Word popularity is heavy-tailed (Zipf-like, p(rank) ~ 1 / (rank + 200)); consecutive entries
-    share half their words, as consecutive frames do.
+    Word popularity is heavy-tailed, p(rank) ~ 1 / (rank + offset), and consecutive entries share
+    half their words, as consecutive frames do. The offset sets how much a query touches: the
+    expected postings per query per stored entry is sum(df^2) over words (df: the fraction of
+    entries holding the word). Measured on 176 real frames (CamVid, KITTI, EuRoC, TUM) with the
+    shipped 96,618-word vocabulary that sum is 46; a tree with ten times the words splits each
+    word about ten ways, so about 4.6 is realistic for 10^6 words, which offset = 10,000 gives
+    (offset = 200 would give ~70, a far more skewed vocabulary than k-means trees produce).
     """
 
-    def __init__(self, voc: Vocabulary, n_features: int = 1000, seed: int = 1) -> None:
+    def __init__(
+        self, voc: Vocabulary, n_features: int = 1000, seed: int = 1, offset: float = 10_000.0
+    ) -> None:
         self.voc = voc
         self.n = n_features
         self.rng = np.random.default_rng(seed)
         leaves = voc.word_nodes
         ranks = np.arange(leaves.size)
-        p = 1.0 / (ranks + 200.0)
+        p = 1.0 / (ranks + offset)
         self.cdf = np.cumsum(p) / p.sum()
         self.leaf_perm = self.rng.permutation(leaves)
         self.prev: np.ndarray | None = None

@@ -164,7 +164,11 @@ def test_empty_features_are_stored_and_queried(voc: Vocabulary, images: list[np.
     assert db.query(voc.transform(images[1])[0], 1)[0].entry_id == 2
 
 
-def test_inverted_index_segments_equal_brute_force() -> None:
+@pytest.mark.parametrize("table_from", [1 << 30, 64])  # binary search / CSR word tables
+def test_inverted_index_segments_equal_brute_force(table_from: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    import stablecues.database.inverted as inverted
+
+    monkeypatch.setattr(inverted, "_INDPTR_MIN", table_from)
     rng = np.random.default_rng(0)
     n_words = 500
     idx = InvertedIndex(n_words, Scoring.L1, tail_limit=300)
@@ -176,6 +180,7 @@ def test_inverted_index_segments_equal_brute_force() -> None:
         vectors.append((w, v))
         idx.add(w, v.astype(np.float32))
     assert len(idx._segments) <= 10  # merged logarithmically
+    assert any(seg.indptr is not None for seg in idx._segments) == (table_from == 64)
     qw, qv = vectors[17]
     ids, s = idx.scores(qw, qv, max_id=150)
     brute = {}

@@ -17,23 +17,49 @@ import numpy as np
 
 from ..vocabulary.scoring import Scoring, common_terms, finish, kl_missing_total
 
+_INDPTR_MIN = 1 << 18  # segments at least this large get a word -> offset table
+
 
 @dataclass
 class _Segment:
     words: np.ndarray  # (P,) int32, sorted (stable: entry ids ascending within a word)
     entries: np.ndarray  # (P,) int32
     weights: np.ndarray  # (P,) float32
+    indptr: np.ndarray | None = None  # (W + 1,) offsets of each word's run (large segments)
 
     @property
     def size(self) -> int:
         return int(self.words.shape[0])
 
+    def with_table(self, n_words: int) -> _Segment:
+        """Give a large segment its CSR table, so a query finds each word's run in O(1)."""
+        if self.size >= _INDPTR_MIN and self.indptr is None:
+            counts = np.bincount(self.words, minlength=n_words)
+            dtype = np.int32 if self.size < 2**31 else np.int64
+            self.indptr = np.zeros(n_words + 1, dtype)
+            np.cumsum(counts, out=self.indptr[1:])
+        return self
+
+    def runs(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Start and end offsets of the runs of the given sorted query words."""
+        if self.indptr is not None:
+            return self.indptr[words].astype(np.int64), self.indptr[words + 1].astype(np.int64)
+        return (np.searchsorted(self.words, words, "left"), np.searchsorted(self.words, words, "right"))
+
 
 def _merge(a: _Segment, b: _Segment) -> _Segment:
-    words = np.concatenate((a.words, b.words))
-    order = np.argsort(words, kind="stable")
-    return _Segment(words[order], np.concatenate((a.entries, b.entries))[order],
-                    np.concatenate((a.weights, b.weights))[order])
+    """Merge two word-sorted segments, ``a`` holding the older entries: a linear merge by
+    binary search (no sort of the whole), keeping entry order within each word."""
+    n = a.size + b.size
+    # b's postings go after a's postings of the same word; a's before b's
+    pos_b = np.searchsorted(a.words, b.words, side="right") + np.arange(b.size)
+    pos_a = np.searchsorted(b.words, a.words, side="left") + np.arange(a.size)
+    out = _Segment(np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.float32))
+    for dst, src_a, src_b in ((out.words, a.words, b.words), (out.entries, a.entries, b.entries),
+                              (out.weights, a.weights, b.weights)):
+        dst[pos_a] = src_a
+        dst[pos_b] = src_b
+    return out
 
 
 class InvertedIndex:
@@ -64,9 +90,11 @@ class InvertedIndex:
 
     @property
     def nbytes(self) -> int:
-        return sum(s.words.nbytes + s.entries.nbytes + s.weights.nbytes for s in self._segments) + (
-            self._tail_size * 12
-        )
+        return sum(
+            s.words.nbytes + s.entries.nbytes + s.weights.nbytes
+            + (0 if s.indptr is None else s.indptr.nbytes)
+            for s in self._segments
+        ) + self._tail_size * 12
 
     def add(self, words: np.ndarray, weights: np.ndarray) -> int:
         """Append the next entry's BoW vector; returns its id."""
@@ -107,6 +135,7 @@ class InvertedIndex:
             b = self._segments.pop()
             a = self._segments.pop()
             self._segments.append(_merge(a, b))
+        self._segments[-1].with_table(self.n_words)
 
     def _tail(self) -> _Segment:
         if self._tail_cache is None:
@@ -134,8 +163,7 @@ class InvertedIndex:
         w_parts: list[np.ndarray] = []
         v_parts: list[np.ndarray] = []
         for seg in self._segments:
-            lo = np.searchsorted(seg.words, words, "left")
-            hi = np.searchsorted(seg.words, words, "right")
+            lo, hi = seg.runs(words)
             counts = hi - lo
             total = int(counts.sum())
             if not total:

@@ -277,8 +277,10 @@ class Database:
         eid = self._index.n_entries
         try:
             with self._write():
-                # another process may have added entries: take the real next id
-                (count,) = self._conn.execute("SELECT COUNT(*) FROM entries").fetchone()
+                # another process may have added entries (ids are 0..n-1, so MAX(id) + 1 is the
+                # count, read from the end of the rowid b-tree instead of scanning the table)
+                (last,) = self._conn.execute("SELECT MAX(id) FROM entries").fetchone()
+                count = 0 if last is None else int(last) + 1
                 if count != eid:
                     raise DatabaseError(
                         f"{self._where()}: {count} entries on disk but {eid} loaded: "

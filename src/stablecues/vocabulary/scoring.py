@@ -121,7 +121,10 @@ def common_terms(scoring: Scoring, v: np.ndarray, w: np.ndarray) -> np.ndarray:
         (K,) float64 terms; their sum per vector pair goes to :func:`finish`.
     """
     if scoring == Scoring.L1:
-        return np.abs(v - w) - np.abs(v) - np.abs(w)
+        # DBoW2's |v - w| - |v| - |w|, which is -2 min(v, w) for the non-negative BoW weights
+        if (v.size and v.min() < 0) or (w.size and w.min() < 0):
+            return np.abs(v - w) - np.abs(v) - np.abs(w)
+        return -2.0 * np.minimum(v, w)
     if scoring in (Scoring.L2, Scoring.DOT_PRODUCT):
         return v * w
     if scoring == Scoring.CHI_SQUARE:
