@@ -18,22 +18,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ...semantics.classes import CLASS_NAMES, VOID_NAME
+
 # CamVid 11-class ids
 SKY, BUILDING, POLE, ROAD, PAVEMENT, TREE, SIGN, FENCE, CAR, PEDESTRIAN, BICYCLIST, UNLABELLED = range(12)
-CAMVID_CLASSES = (
-    "Sky",
-    "Building",
-    "Pole",
-    "Road",
-    "Pavement",
-    "Tree",
-    "SignSymbol",
-    "Fence",
-    "Car",
-    "Pedestrian",
-    "Bicyclist",
-    "Unlabelled",
-)
+CAMVID_CLASSES = (*CLASS_NAMES, VOID_NAME)  # the 11 classes and void, ids 0..11
 #: classes whose surfaces decide the visibility-based ground truth (static, textured, upright)
 LANDMARK_CLASSES = (BUILDING, POLE, TREE, SIGN, FENCE)
 
