@@ -57,7 +57,9 @@ POINTS = [(5.0, 2.0), (5.0, 7.0), (25.0, 7.0), (5.0, 15.0), (35.0, 15.0), (10.0,
 
 def test_hard_mask_keeps_only_static_pixels(labels: np.ndarray) -> None:
     feats = make_features(POINTS)
-    kept, report = select_features(feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0))
+    kept, report = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.0)
+    )
     assert report.passed.tolist() == [False, True, True, False, False, True]
     assert report.kept == 3 and report.dropped == 3 and not report.fallback
     np.testing.assert_array_equal(kept.keypoints, feats.keypoints[[1, 2, 5]])
@@ -68,24 +70,32 @@ def test_hard_mask_keeps_only_static_pixels(labels: np.ndarray) -> None:
 def test_uncertainty_threshold_drops_uncertain_static_pixels(labels: np.ndarray) -> None:
     unc = np.zeros(labels.shape, np.float32)
     unc[5:10, 20:] = 0.2  # the tree is uncertain
-    cfg = MaskingConfig(mode="hard", max_uncertainty=0.1, min_kept=0)
+    cfg = MaskingConfig(mode="hard", max_uncertainty=0.1, min_kept=0, min_kept_fraction=0.0)
     _, report = select_features(make_features(POINTS), make_seg(labels, unc), cfg)
     assert report.passed.tolist() == [False, True, False, False, False, True]
 
 
 def test_dynamic_mode_drops_only_confident_dynamic_classes(labels: np.ndarray) -> None:
     feats = make_features(POINTS)
-    _, report = select_features(feats, make_seg(labels), MaskingConfig(mode="dynamic", min_kept=0))
+    _, report = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="dynamic", min_kept=0, min_kept_fraction=0.0)
+    )
     assert report.passed.tolist() == [True, True, True, True, False, True]
     unc = np.full(labels.shape, 0.2, np.float32)  # everything uncertain: nothing is confidently a car
-    _, report = select_features(feats, make_seg(labels, unc), MaskingConfig(mode="dynamic", min_kept=0))
+    _, report = select_features(
+        feats, make_seg(labels, unc), MaskingConfig(mode="dynamic", min_kept=0, min_kept_fraction=0.0)
+    )
     assert report.passed.all()
 
 
 def test_dilation_keeps_points_near_static_structure(labels: np.ndarray) -> None:
     feats = make_features([(5.0, 3.0), (5.0, 0.0), (5.0, 12.0)])  # sky 2 px above the building, far sky, road
-    hard = select_features(feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0))[1]
-    dil = select_features(feats, make_seg(labels), MaskingConfig(mode="dilate", dilation=3, min_kept=0))[1]
+    hard = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.0)
+    )[1]
+    dil = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="dilate", dilation=3, min_kept=0, min_kept_fraction=0.0)
+    )[1]
     assert hard.passed.tolist() == [False, False, False]
     assert dil.passed.tolist() == [True, False, True]
     mask = pixel_mask(make_seg(labels), MaskingConfig(mode="dilate", dilation=3))
@@ -95,23 +105,33 @@ def test_dilation_keeps_points_near_static_structure(labels: np.ndarray) -> None
 def test_patch_mode_uses_the_static_fraction_of_the_patch(labels: np.ndarray) -> None:
     # (5, 5): first building row; a 5x5 patch (radius 2) is 3/5 building -> kept at 0.5, not at 0.7
     feats = make_features([(5.0, 5.0), (5.0, 4.0)])
-    r = select_features(feats, make_seg(labels), MaskingConfig(mode="patch", patch_radius=2, min_kept=0))[1]
+    r = select_features(
+        feats,
+        make_seg(labels),
+        MaskingConfig(mode="patch", patch_radius=2, min_kept=0, min_kept_fraction=0.0),
+    )[1]
     assert r.passed.tolist() == [True, False]
-    cfg = MaskingConfig(mode="patch", patch_radius=2, patch_fraction=0.7, min_kept=0)
+    cfg = MaskingConfig(mode="patch", patch_radius=2, patch_fraction=0.7, min_kept=0, min_kept_fraction=0)
     assert select_features(feats, make_seg(labels), cfg)[1].passed.tolist() == [False, False]
     # patch radius from the keypoint size: size 2 -> radius 1 -> 3x3 patch, 2/3 building at row 5
     feats = make_features([(5.0, 5.0)], kp_size=2.0)
-    assert select_features(feats, make_seg(labels), MaskingConfig(mode="patch", min_kept=0))[1].passed[0]
+    assert select_features(
+        feats, make_seg(labels), MaskingConfig(mode="patch", min_kept=0, min_kept_fraction=0.0)
+    )[1].passed[0]
 
 
 def test_fallback_keeps_everything_and_is_reported(labels: np.ndarray) -> None:
     feats = make_features(POINTS)
-    kept, report = select_features(feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=4))
+    kept, report = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=4, min_kept_fraction=0.0)
+    )
     assert report.fallback and report.kept == len(feats) == report.total
     assert int(report.passed.sum()) == 3  # the decision before the fallback is still reported
     np.testing.assert_array_equal(kept.keypoints, feats.keypoints)
     # enough survivors: no fallback
-    _, report = select_features(feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=3))
+    _, report = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=3, min_kept_fraction=0.0)
+    )
     assert not report.fallback and report.kept == 3
     # every keypoint passes: nothing to fall back from even if below min_kept
     _, report = select_features(make_features(POINTS[1:3]), make_seg(labels), MaskingConfig(mode="hard"))
@@ -121,7 +141,9 @@ def test_fallback_keeps_everything_and_is_reported(labels: np.ndarray) -> None:
 def test_indoor_like_frame_triggers_fallback() -> None:
     lab = np.full((20, 40), SKY, np.uint8)  # nothing static anywhere
     feats = make_features([(float(x), 10.0) for x in range(0, 40, 2)])
-    kept, report = select_features(feats, make_seg(lab), MaskingConfig(mode="hard", min_kept=5))
+    kept, report = select_features(
+        feats, make_seg(lab), MaskingConfig(mode="hard", min_kept=5, min_kept_fraction=0.0)
+    )
     assert report.fallback and len(kept) == 20 and report.passed.sum() == 0
 
 
@@ -132,7 +154,9 @@ def test_empty_features_pass_through(labels: np.ndarray) -> None:
 
 def test_keypoints_of_another_image_size_are_scaled(labels: np.ndarray) -> None:
     feats = make_features([(50.0, 70.0), (50.0, 14.0)], size=(400, 200))  # 10x the segmentation
-    _, report = select_features(feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0))
+    _, report = select_features(
+        feats, make_seg(labels), MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.0)
+    )
     assert report.classes.tolist() == [BUILDING, SKY]
 
 
@@ -143,3 +167,15 @@ def test_bad_settings_are_rejected() -> None:
         MaskingConfig(static_classes=frozenset({"Lamppost"}))
     with pytest.raises(ConfigError):
         MaskingConfig(patch_fraction=1.5)
+
+
+def test_fallback_by_fraction(labels: np.ndarray) -> None:
+    feats = make_features(POINTS)  # 3 of 6 pass the hard mask
+    cfg = MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.6)
+    _, report = select_features(feats, make_seg(labels), cfg)
+    assert report.fallback and report.kept == 6
+    cfg = MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.5)
+    _, report = select_features(feats, make_seg(labels), cfg)
+    assert not report.fallback and report.kept == 3
+    with pytest.raises(ConfigError, match="min_kept_fraction"):
+        MaskingConfig(min_kept_fraction=2.0)
