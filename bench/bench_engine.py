@@ -120,6 +120,7 @@ def scale_child(voc_path: str, n: int, db_path: str) -> None:
     q = query_ms(db, voc, kept)
     stats = db.stats()
     db.close()
+    del db  # free the first index before measuring the reopened one
     t = time.perf_counter()
     db2 = Database(voc, db_path)
     reopen = time.perf_counter() - t

@@ -156,7 +156,7 @@ class InvertedIndex:
             values: (M,) float64 query weights.
 
         Returns:
-            entries (P,) int32, entry weights (P,) float64 and the query weight of each
+            entries (P,) int32, entry weights (P,) float32 and the query weight of each
             posting's word (P,) float64.
         """
         ent_parts: list[np.ndarray] = []
@@ -165,13 +165,14 @@ class InvertedIndex:
         for seg in self._segments:
             lo, hi = seg.runs(words)
             counts = hi - lo
-            total = int(counts.sum())
-            if not total:
+            nz = np.flatnonzero(counts)
+            if not nz.size:
                 continue
-            starts = np.cumsum(counts) - counts
-            idx = np.repeat(lo - starts, counts) + np.arange(total)
-            ent_parts.append(seg.entries[idx])
-            w_parts.append(seg.weights[idx].astype(np.float64))
+            # each word's postings are one contiguous run: copy runs (memcpy) rather than
+            # gathering element by element
+            bounds = list(zip(lo[nz].tolist(), hi[nz].tolist(), strict=True))
+            ent_parts.append(np.concatenate([seg.entries[a:b] for a, b in bounds]))
+            w_parts.append(np.concatenate([seg.weights[a:b] for a, b in bounds]))
             v_parts.append(np.repeat(values, counts))
         if self._tail_size:
             tail = self._tail()
@@ -181,11 +182,10 @@ class InvertedIndex:
             lookup[words] = 0.0
             hit = v != 0
             ent_parts.append(tail.entries[hit])
-            w_parts.append(tail.weights[hit].astype(np.float64))
+            w_parts.append(tail.weights[hit])
             v_parts.append(v[hit])
         if not ent_parts:
-            e = np.zeros(0, np.int32)
-            return e, np.zeros(0), np.zeros(0)
+            return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0)
         return np.concatenate(ent_parts), np.concatenate(w_parts), np.concatenate(v_parts)
 
     def scores(
@@ -206,14 +206,15 @@ class InvertedIndex:
         if hi <= min_id or words.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
         ent, w, v = self.postings(words, values)
-        keep = (ent < hi) & (ent >= min_id)
-        if not keep.all():
-            ent, w, v = ent[keep], w[keep], v[keep]
         if ent.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
         terms = common_terms(self.scoring, v, w)
-        sums = np.bincount(ent, weights=terms, minlength=hi)
-        present = np.bincount(ent, minlength=hi) > 0
+        # accumulate over every entry, then keep the id range (cheaper than filtering postings)
+        sums = np.bincount(ent, weights=terms, minlength=self.n_entries)[min_id:hi]
+        if self.scoring == Scoring.KL or not (w.min() > 0 and v.min() > 0):
+            present = np.bincount(ent, minlength=self.n_entries)[min_id:hi] > 0
+        else:
+            present = sums != 0  # every shared word adds a non-zero term when weights are > 0
         ids = np.flatnonzero(present)
         kl = kl_missing_total(values) if self.scoring == Scoring.KL else 0.0
-        return ids, finish(self.scoring, sums[ids], kl)
+        return ids + min_id, finish(self.scoring, sums[ids], kl)

@@ -185,25 +185,28 @@ class Database:
             how many entries were loaded.
         """
         start = self._index.n_entries
+        loaded = 0
         try:
-            rows = self._conn.execute(
-                "SELECT id, bow FROM entries WHERE id >= ? ORDER BY id", (start,)
-            ).fetchall()
+            cursor = self._conn.execute("SELECT id, bow FROM entries WHERE id >= ? ORDER BY id", (start,))
+            while True:
+                rows = cursor.fetchmany(4096)  # bounded memory: one sorted segment per chunk
+                if not rows:
+                    break
+                words_l, entries_l, weights_l = [], [], []
+                for eid, blob in rows:
+                    expect = start + loaded
+                    if eid != expect:
+                        raise DatabaseError(f"{self._where()}: entry ids are not contiguous at id {expect}")
+                    arrays = unpack_arrays(blob, f"{self._where()}: entry {eid}")
+                    words_l.append(arrays["words"])
+                    weights_l.append(arrays["weights"])
+                    entries_l.append(np.full(arrays["words"].shape[0], eid, np.int32))
+                    loaded += 1
+                self._index.add_many(np.concatenate(words_l), np.concatenate(entries_l),
+                                     np.concatenate(weights_l), start + loaded)
         except sqlite3.DatabaseError as exc:
             raise DatabaseError(f"{self._where()}: cannot read entries ({exc})") from exc
-        if not rows:
-            return 0
-        words_l, entries_l, weights_l = [], [], []
-        for expect, (eid, blob) in enumerate(rows, start):
-            if eid != expect:
-                raise DatabaseError(f"{self._where()}: entry ids are not contiguous at id {expect}")
-            arrays = unpack_arrays(blob, f"{self._where()}: entry {eid}")
-            words_l.append(arrays["words"])
-            weights_l.append(arrays["weights"])
-            entries_l.append(np.full(arrays["words"].shape[0], eid, np.int32))
-        self._index.add_many(np.concatenate(words_l), np.concatenate(entries_l),
-                             np.concatenate(weights_l), start + len(rows))
-        return len(rows)
+        return loaded
 
     def close(self) -> None:
         self._conn.close()

@@ -7,7 +7,7 @@ inverse-index query uses the very same terms (see :mod:`stablecues.database`).
 =================  ==========  ============================================  ===========
 scoring            norm        score                                         range
 =================  ==========  ============================================  ===========
-L1                 L1          -1/2 * sum(|v-w| - |v| - |w|)                 [0, 1]
+L1                 L1          -1/2 * sum(|v-w| - |v| - |w|) = sum(min(v,w))  [0, 1]
 L2                 L2          1 - sqrt(1 - sum(v*w))                        [0, 1]
 chi-square         L1          2 * sum(v*w / (v+w))                          [0, 1]
 KL                 L1          sum_v v*log(v/w), eps where w missing         >= 0, lower
@@ -121,10 +121,11 @@ def common_terms(scoring: Scoring, v: np.ndarray, w: np.ndarray) -> np.ndarray:
         (K,) float64 terms; their sum per vector pair goes to :func:`finish`.
     """
     if scoring == Scoring.L1:
-        # DBoW2's |v - w| - |v| - |w|, which is -2 min(v, w) for the non-negative BoW weights
+        # DBoW2 sums |v - w| - |v| - |w| and scales by -1/2; for the non-negative BoW weights
+        # each term is then simply min(v, w)
         if (v.size and v.min() < 0) or (w.size and w.min() < 0):
-            return np.abs(v - w) - np.abs(v) - np.abs(w)
-        return -2.0 * np.minimum(v, w)
+            return -0.5 * (np.abs(v - w) - np.abs(v) - np.abs(w))
+        return np.minimum(v, w)
     if scoring in (Scoring.L2, Scoring.DOT_PRODUCT):
         return v * w
     if scoring == Scoring.CHI_SQUARE:
@@ -150,8 +151,6 @@ def kl_missing_total(v: np.ndarray) -> float:
 
 def finish(scoring: Scoring, sums: np.ndarray, kl_missing: float = 0.0) -> np.ndarray:
     """Turn per-pair sums of :func:`common_terms` into DBoW2 scores (array in, array out)."""
-    if scoring == Scoring.L1:
-        return -sums / 2.0
     if scoring == Scoring.L2:
         return np.where(sums >= 1.0, 1.0, 1.0 - np.sqrt(np.clip(1.0 - sums, 0.0, None)))
     if scoring == Scoring.CHI_SQUARE:
