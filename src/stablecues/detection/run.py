@@ -88,8 +88,9 @@ def run_dataset(
     if len(detector) != start:
         raise_mismatch(out, len(detector), start)
     sim_path = out / "similarity.npy"
-    sim = np.zeros((n, n), np.float32)
-    if resume and sim_path.exists():
+    # the similarity matrix is N x N float32 (4 bytes x N^2): turn it off for very long runs
+    sim = np.zeros((n, n) if config.similarity else (0, 0), np.float32)
+    if config.similarity and resume and sim_path.exists():
         old = np.load(sim_path)
         k = min(old.shape[0], n)
         sim[:k, :k] = old[:k, :k]
@@ -129,11 +130,12 @@ def run_dataset(
                        d.raw_score if d.candidate >= 0 else float("nan"),
                        d.accepted, d.timings, extra)
             bar.update(1)
-            if (i + 1) % 200 == 0:
+            if config.similarity and (i + 1) % 200 == 0:
                 writer.set_similarity(sim[: i + 1, : i + 1])
     finally:
         bar.close()
-        writer.set_similarity(sim)
+        if config.similarity:
+            writer.set_similarity(sim)
         detector.close()
     saved = _match_pictures(dataset, accepted, writer, pictures, config)
     writer.close()
