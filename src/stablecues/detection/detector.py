@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from ..config import to_dict
 from ..database import Database
 from ..datasets.base import Frame
 from ..errors import ConfigError, InputError
@@ -373,9 +372,6 @@ class LoopDetector:
         if consistent < q.temporal_k:
             return Status.NO_TEMPORAL_CONSISTENCY
         return None
-
-    def config_dict(self) -> dict[str, Any]:
-        return to_dict(self.config)
 
 
 @dataclass
