@@ -41,8 +41,10 @@ def images() -> list[np.ndarray]:
     """Descriptor sets of 'images': each mixes its own descriptors with some shared ones."""
     rng = np.random.default_rng(0)
     common = rng.integers(0, 256, (60, 32), dtype=np.uint8)
-    return [np.concatenate([rng.integers(0, 256, (80, 32), dtype=np.uint8), common[rng.choice(60, 20)]])
-            for _ in range(N_IMAGES)]
+    return [
+        np.concatenate([rng.integers(0, 256, (80, 32), dtype=np.uint8), common[rng.choice(60, 20)]])
+        for _ in range(N_IMAGES)
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -257,3 +259,16 @@ def test_concurrent_reader_sees_new_entries_after_refresh(
         reader.add(bow, voc.transform(images[12])[1], fake_features(images[12]))
     reader.close()
     writer.close()
+
+
+def test_paths_with_uri_characters_are_used_as_given(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    path = tmp_path / "my#map?v=1%.sqlite"
+    with Database(voc, path) as db:
+        fill(db, voc, images[:3])
+    assert path.is_file() and sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".sqlite") == [
+        path.name
+    ]
+    with Database(voc, path) as db:
+        assert len(db) == 3

@@ -178,3 +178,14 @@ def test_cli_run_and_eval_end_to_end(
     assert result["fp"] == 0 and result["tp"] >= 8 and result["recall_at_100p"] > 0.4
     sim = np.load(out / "similarity.npy")
     assert sim.shape == (FRAMES, FRAMES) and np.allclose(np.triu(sim), 0)
+
+
+def test_run_refuses_to_delete_a_named_database(frames: list[Frame], tmp_path: Path) -> None:
+    from stablecues.detection.run import run_dataset
+    from stablecues.errors import DatasetError
+
+    db = tmp_path / "precious.sqlite"
+    db.write_bytes(b"keep me")
+    with pytest.raises(DatasetError, match="exists"):
+        run_dataset(frames[:3], fast("bow"), tmp_path / "run", database=db, progress=False)  # type: ignore[arg-type]
+    assert db.read_bytes() == b"keep me"

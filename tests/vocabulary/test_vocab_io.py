@@ -108,3 +108,9 @@ def test_default_vocabulary_ships_and_loads() -> None:
     assert v.k == 10 and v.levels == 5 and v.n_words > 50_000
     bow, _ = v.transform(np.random.default_rng(0).integers(0, 256, (100, 32), dtype=np.uint8))
     assert len(bow) > 0
+
+
+def test_text_with_header_only_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "h.txt").write_text("10 6  0 0\n")
+    with pytest.raises(VocabularyError, match="no node lines"):
+        load_vocabulary(tmp_path / "h.txt")

@@ -112,7 +112,8 @@ class Database:
                 raise DatabaseError(f"{where}: not a file")
             if not self.readonly:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-            target = f"file:{self.path}?mode={'ro' if self.readonly else 'rwc'}"
+            # as_uri() percent-encodes '#', '?' and '%', which a raw "file:" URI would cut at
+            target = f"{self.path.resolve().as_uri()}?mode={'ro' if self.readonly else 'rwc'}"
             uri = True
         try:
             conn = sqlite3.connect(target, uri=uri, timeout=self.config.busy_timeout_s,
@@ -269,8 +270,6 @@ class Database:
             check_array("pose", pose, shape=(4, 4))
             payload["pose"] = np.asarray(pose, np.float64)
         for name, arr in (arrays or {}).items():
-            if name in payload:
-                raise InputError(f"extra array name {name!r} is reserved")
             payload["x_" + name] = np.asarray(arr)
         try:
             meta_text = json.dumps(meta or {})

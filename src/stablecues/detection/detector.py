@@ -200,7 +200,8 @@ class LoopDetector:
         hi = n - q.exclude_recent
         if q.exclude_recent_s is not None and math.isfinite(timestamp) and self._timestamps:
             ts = np.asarray(self._timestamps)
-            newer = np.flatnonzero(np.nan_to_num(ts, nan=-np.inf) > timestamp - q.exclude_recent_s)
+            # eligible only when strictly older than the window, as the evaluator counts it
+            newer = np.flatnonzero(np.nan_to_num(ts, nan=-np.inf) >= timestamp - q.exclude_recent_s)
             if newer.size:
                 hi = min(hi, int(newer[0]))
         return max(hi, 0)
@@ -334,7 +335,9 @@ class LoopDetector:
                     pose=frame.pose, meta=meta)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
-        self._prev_bow = prep.bow
+        # the database keeps float32 weights: use the same rounding now as after a reopen, so a
+        # resumed run normalises scores exactly as an uninterrupted one
+        self._prev_bow = BowVector(prep.bow.words, prep.bow.weights.astype(np.float32).astype(np.float64))
         prep.timings["add"] = (time.perf_counter() - t) * 1e3
 
     def _query(self, bow: BowVector, frame: Frame, entry: int, out: dict[str, Any]) -> Status | None:

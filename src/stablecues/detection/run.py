@@ -71,6 +71,10 @@ def run_dataset(
     out.mkdir(parents=True, exist_ok=True)
     db_path = Path(database) if database is not None else out / "map.sqlite"
     if not resume and db_path.exists():
+        if database is not None:  # a file the user named: never delete it silently
+            from ..errors import DatasetError
+
+            raise DatasetError(f"{db_path}: database file exists; continue it with --resume or remove it")
         for suffix in ("", "-wal", "-shm"):
             Path(str(db_path) + suffix).unlink(missing_ok=True)
     n = len(dataset) if max_frames is None else min(len(dataset), max_frames)

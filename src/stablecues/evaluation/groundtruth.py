@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,7 +281,14 @@ def fit_view(gt: GroundTruth, view: View, n_frames: int | None = None) -> Ground
         )
     even = gt.n - gt.n % 2
     matrix = select_view(np.ascontiguousarray(gt.matrix[:even, :even]), view)
-    mask = None if gt.query_mask is None else np.asarray(gt.query_mask[:even:2])
+    if gt.query_mask is None:
+        mask = None
+    elif view == "left":
+        mask = np.asarray(gt.query_mask[0:even:2])
+    elif view == "right":
+        mask = np.asarray(gt.query_mask[1:even:2])
+    else:  # "pair": a place counts when either camera's image does
+        mask = np.asarray(gt.query_mask[0:even:2] | gt.query_mask[1:even:2])
     return GroundTruth(matrix, gt.path, gt.sha256, gt.variable, gt.transposed, view, mask, dict(gt.notes))
 
 
@@ -368,12 +376,7 @@ def load_ground_truth(
     elif suffix == ".npz":
         raw, name = _read_npz(p, variable)
     elif suffix == ".npy":
-        try:
-            raw = np.load(p, allow_pickle=False)
-        except ValueError:  # object array: the VPR-Bench table
-            raw = np.load(p, allow_pickle=True)
-        except OSError as exc:
-            raise DatasetError(f"{p}: not a readable .npy file ({exc})") from None
+        raw = _read_npy(p)
         name = None
         if raw.dtype == object:
             if n_ref is None and (p.parent / "ref").is_dir():
@@ -429,7 +432,7 @@ def _read_mat(path: Path, variable: str | None) -> tuple[Any, str]:
         data = scipy.io.loadmat(str(path))
     except NotImplementedError:  # MATLAB v7.3 = HDF5
         return _read_mat73(path, variable)
-    except (ValueError, TypeError, OSError) as exc:
+    except (ValueError, TypeError, OSError, scipy.io.matlab.MatReadError) as exc:
         raise DatasetError(f"{path}: not a readable MATLAB file ({str(exc).splitlines()[0]})") from None
     return _pick(data, path, variable)
 
@@ -447,11 +450,28 @@ def _read_mat73(path: Path, variable: str | None) -> tuple[Any, str]:
     return _pick(arrays, path, variable)
 
 
+def _read_npy(path: Path) -> np.ndarray:
+    """A .npy array; object arrays (the VPR-Bench table) only unpickled when the header says
+    object dtype, so a corrupt or foreign file never runs pickle."""
+    import pickle
+
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                _, _, dtype = np.lib.format.read_array_header_1_0(fh)
+            else:
+                _, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        return np.load(path, allow_pickle=dtype == np.dtype(object))
+    except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
+        raise DatasetError(f"{path}: not a readable .npy file ({str(exc).splitlines()[0]})") from None
+
+
 def _read_npz(path: Path, variable: str | None) -> tuple[Any, str]:
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
         raise DatasetError(f"{path}: not a readable .npz file ({str(exc).splitlines()[0]})") from None
     return _pick(arrays, path, variable)
 
@@ -463,7 +483,8 @@ def _read_image(path: Path) -> np.ndarray:
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise DatasetError(f"{path}: not a readable image")
-    return np.asarray(image.any(axis=2)) if image.ndim == 3 else np.asarray(image)
+    # colour images: any colour channel set (an alpha channel is not a loop)
+    return np.asarray(image[..., :3].any(axis=2)) if image.ndim == 3 else np.asarray(image)
 
 
 def ground_truth_from_poses(positions: np.ndarray, *, max_distance: float, **kwargs: Any) -> GroundTruth:

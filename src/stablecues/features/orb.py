@@ -85,6 +85,14 @@ def level_quotas(n_features: int, scale_factor: float, n_levels: int) -> np.ndar
         total += quotas[level]
         per *= f
     quotas[-1] = max(n_features - total, 0)
+    # rounding up the first levels can overshoot a tiny total: take the excess back from the top
+    excess = int(quotas.sum()) - n_features
+    for level in range(n_levels - 1, -1, -1):
+        if excess <= 0:
+            break
+        cut = min(excess, int(quotas[level]))
+        quotas[level] -= cut
+        excess -= cut
     return quotas
 
 

@@ -141,7 +141,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
             f"{path}: truncated vocabulary file: {raw.size} bytes, expected {start + size}"
         )
     payload = raw[start : start + size]
-    if zlib.crc32(np.ascontiguousarray(payload).data) != header["payload_crc32"]:
+    if zlib.crc32(np.ascontiguousarray(payload).data) != header.get("payload_crc32"):
         raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
     arrays = {}
     try:
@@ -187,6 +187,8 @@ def _load_text(path: Path, levels_up: int | None) -> Vocabulary:
             f"the file ends inside line {line} (truncated?)"
         )
     table = values.reshape(-1, cols)
+    if table.shape[0] == 0:
+        raise VocabularyError(f"{path}: no node lines after the header (truncated?)")
     n = table.shape[0] + 1
     parents = np.empty(n, np.int32)
     parents[0] = -1
