@@ -49,7 +49,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     i.add_argument("--out", required=True, help="PNG to write")
     i.add_argument("--weights", default=None, help="ONNX file (default: the shipped weights)")
     i.add_argument("-T", "--samples", type=int, default=None)
-    i.add_argument("--mode", default="hard", help="masking mode: hard, dilate, patch, dynamic, none")
+    i.add_argument("--mode", default="dynamic", choices=["hard", "dilate", "patch", "dynamic", "none"],
+                   help="masking mode (default: dynamic, the library's default)")
     i.add_argument("--max-uncertainty", type=float, default=None)
     i.add_argument("--features", type=int, default=1000, help="ORB features to extract")
     return p

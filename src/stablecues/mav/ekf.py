@@ -419,6 +419,7 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
     q_bb = cfg.baro_bias_noise**2
 
     t_now = t_start
+    t_imu = t_start
     j_imu = max(int(np.searchsorted(i_t, t_start, side="right")) - 1, 0)
     a_m, w_m = i_acc[j_imu], i_gyro[j_imu]
     last_gnss_ok = t_start
@@ -486,18 +487,23 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
         te = float(all_t[e])
         kind = int(all_k[e])
         i = int(all_i[e])
-        if te - t_now > cfg.max_imu_gap_s:
-            # a logging gap (e.g. disarmed): do not integrate across it; the vehicle may have been
-            # moved or set upright, so attitude restarts from accelerometer and compass
-            need_anchor = True
-            q, yaw_sigma = level_attitude(te, te + cfg.init_window_s)
-            P[6:9, :] = 0.0
-            P[:, 6:9] = 0.0
-            P[6, 6] = P[7, 7] = 0.05**2
-            P[8, 8] = yaw_sigma**2
+        if te - t_imu > cfg.max_imu_gap_s:
+            # the IMU has been silent (a logging gap, e.g. disarmed, or an IMU dropout while the
+            # other sensors go on): never integrate a held IMU sample across it. When the IMU is
+            # back the vehicle may have been moved or set upright, so attitude restarts from
+            # accelerometer and compass, and position re-anchors on the next GNSS fix.
+            if kind == 0:
+                need_anchor = True
+                q, yaw_sigma = level_attitude(te, te + cfg.init_window_s)
+                P[6:9, :] = 0.0
+                P[:, 6:9] = 0.0
+                P[6, 6] = P[7, 7] = 0.05**2
+                P[8, 8] = yaw_sigma**2
         else:
             predict(te - t_now)
         t_now = te
+        if kind == 0:
+            t_imu = te
         if need_anchor and kind == 1:
             p = g_pos[i].copy()
             v = np.nan_to_num(g_vel[i].copy())
@@ -654,6 +660,13 @@ def compare_solutions(
     if not np.any(keep) or len(estimate) == 0:
         raise InputError(f"{estimate.name} and {reference.name} do not overlap in time")
     est = estimate.interpolate(ref.t[keep])
+    # the estimate may have gaps inside the reference's span (interpolation gives NaN there)
+    fin = np.isfinite(est.position).all(axis=1)
+    if not fin.any():
+        raise InputError(f"{estimate.name} and {reference.name} have no common valid samples")
+    if not fin.all():
+        keep[np.flatnonzero(keep)[~fin]] = False
+        est = estimate.interpolate(ref.t[keep])
     diff = est.position - ref.position[keep]
     offset = diff.mean(axis=0) if remove_offset else np.zeros(3)
     d = diff - offset

@@ -125,6 +125,8 @@ def _pixels(features: Features, seg: SegmentationResult) -> tuple[np.ndarray, np
     sx = seg_w / feat_w if feat_w > 0 else 1.0
     sy = seg_h / feat_h if feat_h > 0 else 1.0
     xy = features.keypoints.astype(np.float64)
+    if not np.isfinite(xy).all():
+        raise InputError("features: keypoints must be finite (NaN or inf found)")
     x = np.clip(np.floor(xy[:, 0] * sx), 0, seg_w - 1).astype(np.int64)
     y = np.clip(np.floor(xy[:, 1] * sy), 0, seg_h - 1).astype(np.int64)
     return x, y, sx

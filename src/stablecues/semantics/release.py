@@ -143,6 +143,7 @@ def release(
         meta_path.unlink()  # stale metadata must not describe the new graph
     model = SegmentationModel.load(onnx_path)
     model.default_t = default_t
+    model.input_size = (int(input_size[0]), int(input_size[1]))  # no metadata file yet
     metrics: dict[str, Any] = {}
     for split in splits:
         for t in sorted({1, default_t}):
