@@ -189,3 +189,26 @@ def test_run_refuses_to_delete_a_named_database(frames: list[Frame], tmp_path: P
     with pytest.raises(DatasetError, match="exists"):
         run_dataset(frames[:3], fast("bow"), tmp_path / "run", database=db, progress=False)  # type: ignore[arg-type]
     assert db.read_bytes() == b"keep me"
+
+
+def test_map_points_without_calibration_are_verified(frames: list[Frame]) -> None:
+    """A SLAM system hands in its own features and map points, no calibration: every frame gets
+    a decision (query and stored points share one noise model)."""
+    import dataclasses
+
+    from stablecues.features import OrbConfig, OrbExtractor
+
+    ex = OrbExtractor(OrbConfig(n_features=400))
+    det = LoopDetector(fast("triangles-only"))  # type: ignore[arg-type]
+    decisions = []
+    for f in frames:
+        feats = ex.extract(f.image)
+        # a fronto-parallel wall 4 m away, seen from the frame's x offset: consistent across visits
+        x = (feats.keypoints[:, 0] - 160 + place_of(f.index)) / 80.0
+        y = (feats.keypoints[:, 1] - 120) / 80.0
+        pts = np.stack([x - place_of(f.index) / 80.0, y, np.full_like(x, 4.0)], axis=1).astype(np.float32)
+        decisions.append(det.process(dataclasses.replace(f, points3d=pts), features=feats))
+    assert len(decisions) == FRAMES
+    checked = [d for d in decisions if d.verification is not None]
+    assert checked and all(d.verification.method.value == "triangles" for d in checked)
+    assert any(d.accepted for d in checked)

@@ -150,28 +150,50 @@ class LoopDetector:
     def _calib(self, frame: Frame) -> Any | None:
         return frame.calibration if frame.calibration is not None else self.calibration
 
-    def _lift(self, frame: Frame, features: Features, calib: Any | None) -> Any | None:
-        """3D points of the features in the frame's camera (Points3D), or None."""
-        from ..geometry import NoiseModel, StereoLifter, lift_depth, lift_map_points
+    def _noise(self, calib: Any | None) -> Any:
+        """The noise model of the 3D points of frames with this calibration: the stereo lifter's
+        own (rectified focal, its disparity noise) for stereo rigs, the calibration's for depth
+        cameras, and a generic one for map points without a stereo or depth calibration, so that
+        query and stored points always get the same model."""
+        from ..geometry import NoiseModel, StereoLifter
 
-        if frame.points3d is not None:
-            pts = np.asarray(frame.points3d)
-            if pts.shape != (len(features), 3):
-                raise InputError(f"frame {frame.index}: points3d has shape {pts.shape}, expected "
-                                 f"({len(features)}, 3), one per feature")
-            noise = NoiseModel.for_calibration(calib) if calib is not None else NoiseModel(0.01, 500.0)
-            return lift_map_points(pts, noise, octaves=features.octaves)
-        if calib is None:
-            return None
-        if frame.right is not None and calib.is_stereo:
+        if calib is not None and calib.is_stereo:
             lifter = self._lifters.get(id(calib))
             if lifter is None:
                 lifter = self._lifters[id(calib)] = StereoLifter(calib)
-            return lifter.lift(features, frame.image, frame.right)
-        if frame.depth is not None:
-            raw = np.issubdtype(np.asarray(frame.depth).dtype, np.integer)  # e.g. a 16-bit PNG as read
-            return lift_depth(features, frame.depth, calib.left,
-                              depth_scale=calib.depth_scale if raw else None)
+            return lifter.noise
+        if calib is not None:
+            try:
+                return NoiseModel.for_calibration(calib)
+            except ConfigError:
+                pass
+        # map points from a SLAM system, nothing known of their sensor: 1 % depth noise at 1 m
+        focal = calib.left.fx if calib is not None else 500.0
+        return NoiseModel(0.01, focal)
+
+    def _lift(self, frame: Frame, features: Features, calib: Any | None) -> Any | None:
+        """3D points of the features in the frame's camera (Points3D), or None."""
+        from ..geometry import lift_depth, lift_map_points
+
+        where = f"frame {frame.index} ({frame.name})"
+        try:
+            if frame.points3d is not None:
+                pts = np.asarray(frame.points3d)
+                if pts.shape != (len(features), 3):
+                    raise InputError(f"points3d has shape {pts.shape}, expected ({len(features)}, 3), "
+                                     "one per feature")
+                return lift_map_points(pts, self._noise(calib), octaves=features.octaves)
+            if calib is None:
+                return None
+            if frame.right is not None and calib.is_stereo:
+                self._noise(calib)  # builds the lifter
+                return self._lifters[id(calib)].lift(features, frame.image, frame.right)
+            if frame.depth is not None:
+                raw = np.issubdtype(np.asarray(frame.depth).dtype, np.integer)  # a 16-bit PNG as read
+                return lift_depth(features, frame.depth, calib.left,
+                                  depth_scale=calib.depth_scale if raw else None)
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
         return None
 
     def _verifier(self, calib: Any | None) -> Any:
@@ -187,9 +209,9 @@ class LoopDetector:
             if calib is None:
                 if cfg.method == "pnp":
                     raise ConfigError("PnP verification needs a calibration (the query camera)")
-                v = Verifier(merge(cfg, {"min_pnp_inliers": 0}))
+                v = Verifier(merge(cfg, {"min_pnp_inliers": 0}), noise=self._noise(None))
             else:
-                v = Verifier.from_calibration(calib, cfg)
+                v = Verifier(cfg, calib.left, self._noise(calib))
             self._verifiers[key] = v
         return v
 

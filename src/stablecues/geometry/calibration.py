@@ -6,16 +6,35 @@
 
 from __future__ import annotations
 
+import functools
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import yaml
 
 from ..errors import CalibrationError
 from .camera import Calibration, PinholeCamera, Rectification
+
+_F = TypeVar("_F", bound=Callable[..., Calibration])
+
+
+def _names_file(loader: _F) -> _F:
+    """Errors from validating the values read (a zero focal length, a wrong distortion count)
+    are prefixed with the file, so every calibration error names it."""
+
+    @functools.wraps(loader)
+    def wrapper(path: str | Path, *args: Any, **kwargs: Any) -> Calibration:
+        try:
+            return loader(path, *args, **kwargs)
+        except CalibrationError as exc:
+            if str(Path(path)) in str(exc) or Path(path).name in str(exc):
+                raise
+            raise CalibrationError(f"{path}: {exc}") from None
+
+    return wrapper  # type: ignore[return-value]
 
 __all__ = [
     "TUM_CAMERAS",
@@ -69,6 +88,7 @@ def _is_tum_name(name: str) -> bool:
     return name.lower().removeprefix("tum:").removeprefix("tum-") in _TUM_ALIASES
 
 
+@_names_file
 def load_calibration(path: str | Path) -> Calibration:
     """Read a calibration file, detecting its format.
 
@@ -210,6 +230,7 @@ def _euroc_camera(path: Path) -> tuple[PinholeCamera, np.ndarray]:
     return cam, t_bs
 
 
+@_names_file
 def load_euroc(path: str | Path) -> Calibration:
     """Monocular calibration from one EuRoC/Kalibr ``sensor.yaml``."""
     path = Path(path)
@@ -217,6 +238,7 @@ def load_euroc(path: str | Path) -> Calibration:
     return Calibration(left=cam, source=str(path))
 
 
+@_names_file
 def load_euroc_stereo(left_path: str | Path, right_path: str | Path) -> Calibration:
     """Stereo calibration from the left and right cameras' EuRoC ``sensor.yaml`` files.
 
@@ -250,6 +272,7 @@ def load_euroc_stereo(left_path: str | Path, right_path: str | Path) -> Calibrat
 # --- KITTI ----------------------------------------------------------------------------------------
 
 
+@_names_file
 def load_kitti(path: str | Path, *, pair: str = "grey") -> Calibration:
     """Rectified stereo calibration from a KITTI ``calib.txt``.
 
@@ -305,6 +328,7 @@ def _parse_kitti(text: str, path: Path, pair: str = "grey") -> Calibration:
 # --- ORB-SLAM settings ----------------------------------------------------------------------------
 
 
+@_names_file
 def load_orbslam(path: str | Path) -> Calibration:
     """Calibration from an ORB-SLAM(2/3) settings yaml.
 

@@ -377,12 +377,15 @@ class StereoLifter:
             kp_rect = self.rectifier.rectify_keypoints(keypoints)
         else:
             kp_rect = np.asarray(keypoints, np.float64)
+        max_d = self.max_disparity
+        if self.rectified.left.width is None and self.config.max_disparity is None:
+            max_d = min(max_d, left.shape[1] / 3.0)  # width known only now: same cap as above
         disp, _ = stereo_disparities(
             left,
             right,
             kp_rect,
             min_disparity=self.config.min_disparity,
-            max_disparity=self.max_disparity,
+            max_disparity=max_d,
             config=self.config,
         )
         cam = self.rectified.left

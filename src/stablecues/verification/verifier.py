@@ -104,9 +104,8 @@ class Verifier:
                 )
             xyz = np.asarray(xyz)
             n = xyz.shape[0]
-            return Points3D(
-                np.asarray(xyz, np.float32), np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
-            )
+            # the relative tolerance never reads the sigmas; zeros keep the points valid
+            return Points3D(np.asarray(xyz, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32))
         return self.noise.points(xyz, features.octaves)
 
     def view_of_entry(self, entry: Entry) -> View:
@@ -453,6 +452,18 @@ class Verifier:
                 **extra,
             )
         pose = self._pose(query, candidate, matches, timings)
+        if not pose.success and cfg.min_pnp_inliers == 0:  # PnP only gives the pose here, no vote
+            return self._finish(
+                True,
+                Method.TRIANGLES,
+                Status.ACCEPTED,
+                summary + "; PnP found no pose",
+                matches,
+                self._vertex_mask(tc, len(matches)),
+                t0,
+                timings,
+                **extra,
+            )
         return self._decide_pose(pose, Method.TRIANGLES, matches, t0, timings, summary + "; ", **extra)
 
     @staticmethod
