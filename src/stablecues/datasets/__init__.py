@@ -81,7 +81,7 @@ def detect_format(path: str | Path) -> str:
         return "kitti"
     if (root / "ref").is_dir() and (root / "query").is_dir():
         return "vprbench"
-    if (root / "Images").is_dir() or any(root.glob("*GroundTruth*.mat")):
+    if (root / "Images").is_dir() or any(root.glob("*[Gg]round[Tt]ruth*.mat")):
         return "fabmap"
     image_dir = root / "rgb" if (root / "rgb").is_dir() else root
     if any(root.glob("*groundtruth*.txt")) and any(

@@ -446,6 +446,11 @@ def write_sequence(
         + (["depth"] if depth else [])
         + (["labels"] if labels else [])
     )
+    if overwrite:
+        # an earlier sequence's frames (other count, other outputs) must not mix with this one
+        for sub in ("images", "right", "depth", "labels"):
+            for old in (out / sub).glob("*.png") if (out / sub).is_dir() else ():
+                old.unlink()
     for sub in subdirs:
         (out / sub).mkdir(parents=True, exist_ok=True)
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
