@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError, check_array
-from ..types import DESCRIPTOR_BYTES, Features, FeatureVector
+from ..types import Features, FeatureVector
+from ..vocabulary.descriptors import as_words, check_descriptors, hamming_cross, hamming_rows
 
 __all__ = ["Matches", "hamming_matrix", "hamming_pairs", "match_features"]
 
-_WORDS = DESCRIPTOR_BYTES // 8
 _NONE = 256  # "second best" when a feature has a single candidate
 
 
@@ -79,11 +79,6 @@ class Matches:
         return np.clip(1.0 - self.distance.astype(np.float32) / 128.0, 0.0, 1.0)
 
 
-def _words(name: str, descriptors: np.ndarray) -> np.ndarray:
-    check_array(name, descriptors, dtype=np.uint8, shape=(None, DESCRIPTOR_BYTES))
-    return np.ascontiguousarray(descriptors).view(np.uint64)
-
-
 def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """All Hamming distances between two sets of 256-bit descriptors.
 
@@ -94,12 +89,9 @@ def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     Returns:
         (N, M) uint16 distances.
     """
-    wa = _words("descriptors a", a)
-    wb = _words("descriptors b", b)
-    d = np.bitwise_count(wa[:, None, 0] ^ wb[None, :, 0]).astype(np.uint16)
-    for k in range(1, _WORDS):
-        d += np.bitwise_count(wa[:, None, k] ^ wb[None, :, k])
-    return d
+    check_descriptors(a, "descriptors a")
+    check_descriptors(b, "descriptors b")
+    return hamming_cross(as_words(a), as_words(b)).astype(np.uint16)
 
 
 def hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
@@ -112,13 +104,9 @@ def hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) 
     Returns:
         (P,) int32 distances.
     """
-    wa = _words("descriptors a", a)[ia]
-    wb = _words("descriptors b", b)[ib]
-    x = wa ^ wb
-    d = np.bitwise_count(x[:, 0]).astype(np.int32)
-    for k in range(1, _WORDS):
-        d += np.bitwise_count(x[:, k])
-    return d
+    check_descriptors(a, "descriptors a")
+    check_descriptors(b, "descriptors b")
+    return hamming_rows(as_words(a)[ia], as_words(b)[ib])
 
 
 def _ragged_pairs(query_nodes: np.ndarray, cand_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
