@@ -147,7 +147,7 @@ def end_to_end(files: list[Path]) -> dict[str, object]:
     db = Database(voc)
     stages: dict[str, list[float]] = {"extract": [], "transform": [], "add": [], "query": []}
     for f in files:
-        img = read_image(f, grey=True)
+        img = read_image(f, "grey")
         t0 = time.perf_counter()
         feats = ex.extract(img)
         t1 = time.perf_counter()
@@ -162,7 +162,7 @@ def end_to_end(files: list[Path]) -> dict[str, object]:
     med = {k: round(float(np.median(v)), 3) for k, v in stages.items()}
     total = float(np.median(np.sum([stages[k] for k in stages], axis=0)))
     return {"frames": len(files), "source": str(files[0].parent.relative_to(SHARED)),
-            "image_size": list(read_image(files[0], grey=True).shape[::-1]),
+            "image_size": list(read_image(files[0], "grey").shape[::-1]),
             "median_ms": med, "total_median_ms": round(total, 3), "vocabulary": voc.info().n_words}
 
 
@@ -200,7 +200,7 @@ def main() -> None:
 
         frames = real_frames()
         if frames:
-            desc = OrbExtractor().extract(read_image(frames[0], grey=True)).descriptors
+            desc = OrbExtractor().extract(read_image(frames[0], "grey")).descriptors
             results["transform_input"] = f"{desc.shape[0]} ORB descriptors of {frames[0].name}"
         else:
             desc = EntryMaker(voc).next()

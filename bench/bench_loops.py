@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from stablecues.datasets import open_dataset
-from stablecues.datasets.base import Frame
+from stablecues.types import Frame
 from stablecues.detection import LoopDetector, describe_preset, preset
 from stablecues.detection.run import run_dataset
 from stablecues.errors import ModelError
@@ -130,7 +130,7 @@ def camvid_frames() -> tuple[list[Frame], list[int], list[int], np.ndarray]:
     last_seq = None
     for f in files:
         seq = f.name.split("_")[0]
-        grey = read_image(f, grey=True)
+        grey = read_image(f, "grey")
         if seq == last_seq and last is not None and median_flow(last, grey) < STILL_PX:
             continue
         kept.append((seq, f))
@@ -251,8 +251,8 @@ def bench_euroc(names: list[str]) -> dict[str, Any]:
             index=k,
             name=f"left_img_{i}.png",
             timestamp=float(k),
-            image=read_image(root / f"left_img_{i}.png", grey=True),
-            right=read_image(root / f"right_img_{i}.png", grey=True),
+            image=read_image(root / f"left_img_{i}.png", "grey"),
+            right=read_image(root / f"right_img_{i}.png", "grey"),
             calibration=calib,
         )
 

@@ -41,7 +41,7 @@ def main() -> None:
     if not images:
         raise SystemExit(f"no CamVid train/val images under {args.data / 'camvid'}")
     extractor = OrbExtractor(OrbConfig())
-    sets = [extractor.extract(read_image(p, grey=True)).descriptors for p in tqdm(images, desc="ORB")]
+    sets = [extractor.extract(read_image(p, "grey")).descriptors for p in tqdm(images, desc="ORB")]
     t0 = time.perf_counter()
     voc = train_vocabulary(sets, k=args.k, levels=args.levels, seed=args.seed)
     took = time.perf_counter() - t0

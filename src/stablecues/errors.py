@@ -31,6 +31,14 @@ class DatasetError(StableCuesError):
     """A dataset, ground-truth or calibration file that is missing or malformed."""
 
 
+class ImageError(DatasetError, InputError):
+    """An image file that is missing, empty, undecodable or of an unexpected form.
+
+    A :class:`DatasetError` (it comes from a file) and an :class:`InputError` (it is bad input),
+    so code catching either keeps working.
+    """
+
+
 class CalibrationError(DatasetError):
     """A calibration file that is missing a field or holds an invalid value."""
 

@@ -6,10 +6,15 @@ Arrays inside these objects are never modified in place by stablecues; treat the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError, check_array
+
+if TYPE_CHECKING:
+    from .geometry.camera import Calibration
 
 DESCRIPTOR_BYTES = 32  # ORB / BRIEF-256
 
@@ -172,3 +177,40 @@ class Entry:
     timestamp: float = float("nan")
     pose: np.ndarray | None = None
     meta: dict[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One frame of a sequence, as handed to the loop detector.
+
+    Attributes:
+        index: position of the frame in its dataset (0, 1, 2, ...); loop ground truth and
+            every results file use this index.
+        name: the image's path relative to the dataset root (or a label), for reports.
+        timestamp: seconds, NaN when unknown.
+        image: (H, W) uint8 grey or (H, W, 3) uint8 BGR left (or only) image, as stored.
+        right: the right image of a stereo pair, same form, as stored; the calibration says
+            whether the pair is rectified. None for monocular data.
+        depth: (H, W) float32 depth in metres registered to ``image``, NaN where unknown.
+        labels: (H, W) uint8 CamVid class ids (0..11) for ``image``.
+        pose: (4, 4) float64 camera-to-world pose of the left camera (ground truth), or None.
+        calibration: the object :func:`stablecues.geometry.load_calibration` returns, or None
+            when there is no calibration file or the geometry module is not available.
+        calibration_path: the calibration file the dataset found (whether or not it could be
+            loaded), or None.
+        keypoints: (N, 2) float32 keypoints handed in by a SLAM system, or None.
+        points3d: (N, 3) float32 3D point per keypoint in the camera frame (NaN unknown), or None.
+    """
+
+    index: int
+    name: str
+    timestamp: float
+    image: np.ndarray
+    right: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    calibration: Calibration | None = None
+    calibration_path: Path | None = None
+    keypoints: np.ndarray | None = None
+    points3d: np.ndarray | None = None

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from stablecues.cli.main import main
-from stablecues.evaluation.groundtruth import save_ground_truth
-from stablecues.evaluation.runs import RunWriter
+from stablecues.groundtruth import save_ground_truth
+from stablecues.runs import RunWriter
 
 N = 160
 EXCLUDE = 20

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from stablecues.datasets import Dataset, detect_format, open_dataset
-from stablecues.datasets.base import associate, nearest, quat_to_matrix
+from stablecues.geometry.rotations import quat_to_matrix
+from stablecues.trajectory import associate, nearest
 from stablecues.errors import ConfigError, DatasetError
 
 

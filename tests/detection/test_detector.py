@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from stablecues.cli.main import main
-from stablecues.datasets.base import Frame
+from stablecues.types import Frame
 from stablecues.detection import LoopDetector, Status, compute_islands, preset
 from stablecues.errors import ConfigError
 

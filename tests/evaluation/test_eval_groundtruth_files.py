@@ -11,7 +11,7 @@ import scipy.io
 
 from conftest import shared_path
 from stablecues.errors import DatasetError, InputError
-from stablecues.evaluation.groundtruth import (
+from stablecues.groundtruth import (
     GroundTruth,
     check_loop_matrix,
     load_ground_truth,
@@ -185,7 +185,7 @@ def test_mat_v73_hdf5(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("dtype", [np.uint8, bool, np.float64, np.int32])
 def test_nonzero_scan_matches_numpy(dtype: type) -> None:
-    from stablecues.evaluation.groundtruth import _nonzero_indices
+    from stablecues.groundtruth import _nonzero_indices
 
     rng = np.random.default_rng(1)
     a = (rng.random((37, 37)) < 0.1).astype(dtype)
@@ -196,7 +196,7 @@ def test_nonzero_scan_matches_numpy(dtype: type) -> None:
 
 
 def test_fit_view_per_camera_or_interleaved() -> None:
-    from stablecues.evaluation.groundtruth import fit_view
+    from stablecues.groundtruth import fit_view
 
     full = np.zeros((6, 6), bool)
     full[4, 0] = full[5, 3] = True

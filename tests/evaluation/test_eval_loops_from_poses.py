@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stablecues.errors import InputError
-from stablecues.evaluation.groundtruth import loops_from_poses
+from stablecues.groundtruth import loops_from_poses
 
 
 def test_square_path_hand_computed() -> None:

@@ -7,7 +7,7 @@ import pytest
 
 from stablecues.errors import InputError
 from stablecues.evaluation.metrics import eligible_limit, evaluate_detections
-from stablecues.evaluation.timing import format_timing_table, timing_table
+from stablecues.runs import format_timing_table, timing_table
 
 
 def _small() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -11,8 +11,8 @@ import pytest
 
 from stablecues.errors import DatasetError, InputError
 from stablecues.evaluation.evaluate import eval_file_name, evaluate_run
-from stablecues.evaluation.groundtruth import GroundTruth
-from stablecues.evaluation.runs import RunWriter, load_run
+from stablecues.groundtruth import GroundTruth
+from stablecues.runs import RunWriter, load_run
 
 STAGES = ["features", "bow", "verify"]
 

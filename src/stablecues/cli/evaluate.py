@@ -81,9 +81,8 @@ def format_summary(doc: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from ..evaluation.evaluate import eval_file_name, evaluate_run, save_evaluation
-    from ..evaluation.groundtruth import View, fit_view, load_ground_truth
-    from ..evaluation.runs import load_run
-    from ..evaluation.timing import format_timing_table
+    from ..groundtruth import View, fit_view, load_ground_truth
+    from ..runs import format_timing_table, load_run
 
     run_ = load_run(args.run_dir)
     gt_path = args.gt or run_.meta.get("ground_truth")

@@ -26,7 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import build_report
-    from ..evaluation.runs import load_run
+    from ..runs import load_run
 
     runs = [load_run(d) for d in args.run_dirs]
     out = build_report(

@@ -43,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def collect_rows(run_dirs: list[Path], protocol: str | None = None) -> list[dict[str, Any]]:
     """One row per (run, evaluation file); a run without one gives a row with protocol None."""
-    from ..evaluation.runs import load_run
+    from ..runs import load_run
 
     rows: list[dict[str, Any]] = []
     for d in run_dirs:

@@ -79,7 +79,7 @@ def _train(args: argparse.Namespace) -> int:
     weighting, scoring = parse_weighting(args.weighting), parse_scoring(args.scoring)
     files = _image_files(args.images)
     extractor = OrbExtractor(OrbConfig(n_features=args.features))
-    sets = [extractor.extract(read_image(f, grey=True)).descriptors for f in tqdm(files, desc="ORB")]
+    sets = [extractor.extract(read_image(f, "grey")).descriptors for f in tqdm(files, desc="ORB")]
     voc = train_vocabulary(sets, k=args.k, levels=args.levels, weighting=weighting, scoring=scoring,
                            seed=args.seed)
     voc.save(args.out)

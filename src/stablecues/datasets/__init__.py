@@ -21,7 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, DatasetError
-from .base import Dataset, Frame, FrameRecord, SequenceDataset, natural_key
+from ..imageio import natural_key
+from ..types import Frame
+from .base import Dataset, FrameRecord, SequenceDataset
 from .euroc import open_euroc
 from .fabmap import FabmapDataset, open_fabmap
 from .folder import open_folder

@@ -24,7 +24,8 @@ import numpy as np
 import yaml
 
 from ..errors import DatasetError
-from .base import FrameRecord, SequenceDataset, nearest, quat_to_matrix, read_number_rows, read_tum_trajectory
+from ..trajectory import nearest, ns_to_seconds, read_euroc, read_tum
+from .base import FrameRecord, SequenceDataset
 
 
 def read_euroc_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -51,12 +52,6 @@ def read_euroc_list(path: Path) -> tuple[np.ndarray, list[str]]:
     if not names:
         raise DatasetError(f"{path}: expected at least one image line, found none")
     return np.asarray(stamps, dtype=np.int64), names
-
-
-def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
-    """int64 nanoseconds -> float64 seconds, keeping sub-microsecond precision."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def read_sensor_yaml(path: Path) -> dict[str, object]:
@@ -89,24 +84,6 @@ def sensor_extrinsics(path: Path) -> np.ndarray:
     if not isinstance(values, list) or len(values) != 16:
         raise DatasetError(f"{path}: expected T_BS with 16 numbers in 'data', found {values!r:.60}")
     return np.asarray(values, dtype=np.float64).reshape(4, 4)
-
-
-def read_euroc_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``state_groundtruth_estimate0/data.csv`` (or ``vicon0/data.csv``).
-
-    Returns:
-        (M,) float64 seconds and (M, 4, 4) float64 body-to-world poses.
-
-    Raises:
-        DatasetError: missing file, or lines with fewer than 8 numbers.
-    """
-    rows = read_number_rows(path, (8, 17), "EuRoC ground truth (ns, p xyz, q wxyz, ...)")
-    times = ns_to_seconds(rows[:, 0].astype(np.int64))
-    poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
-    q_wxyz = rows[:, 4:8]
-    poses[:, :3, :3] = quat_to_matrix(q_wxyz[:, [1, 2, 3, 0]])
-    poses[:, :3, 3] = rows[:, 1:4]
-    return times, poses
 
 
 def _find_tum_groundtruth(seq: Path) -> Path | None:
@@ -177,9 +154,9 @@ def open_euroc(
         gt_file = _find_tum_groundtruth(seq)
     if gt_file is not None:
         if gt_file.suffix == ".csv":
-            gtimes, gposes = read_euroc_groundtruth(gt_file)
+            gtimes, gposes = read_euroc(gt_file)
         else:
-            gtimes, gposes = read_tum_trajectory(gt_file)
+            gtimes, gposes = read_tum(gt_file)
         idx = nearest(times, gtimes, max_difference)
         for rec, k in zip(records, idx, strict=True):
             if k >= 0:

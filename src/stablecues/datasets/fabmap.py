@@ -5,7 +5,7 @@ cameras (which face sideways, they are not a stereo pair): image 0001 left, 0002
 left, ... In 0-based frame order the even indices are the left camera. The ground truth
 (``NewCollegeGroundTruth.mat``, ``CityCentreGroundTruth.mat``) covers every image in that
 interleaved order, so it is reduced the same way as the images (see
-:func:`stablecues.evaluation.groundtruth.select_view`).
+:func:`stablecues.groundtruth.select_view`).
 
 Layout::
 
@@ -20,8 +20,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ..errors import DatasetError
-from ..evaluation.groundtruth import GroundTruth, fit_view, load_ground_truth
-from .base import FrameRecord, SequenceDataset, list_images
+from ..groundtruth import GroundTruth, fit_view, load_ground_truth
+from ..imageio import list_images
+from .base import FrameRecord, SequenceDataset
 
 FabmapView = Literal["left", "right", "all"]
 

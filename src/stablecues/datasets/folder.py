@@ -24,15 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
-from .base import (
-    FrameRecord,
-    SequenceDataset,
-    find_first,
-    list_images,
-    match_by_stem,
-    read_number_rows,
-    read_tum_trajectory,
-)
+from ..imageio import list_images, match_by_stem
+from ..trajectory import read_times, read_tum
+from .base import FrameRecord, SequenceDataset, find_first
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +87,7 @@ def open_folder(
 
     times_file = root / "times.txt"
     if times_file.is_file():
-        times = read_number_rows(times_file, 1, "times (one timestamp per line)")[:, 0]
+        times = read_times(times_file)
         if times.shape[0] != n:
             raise DatasetError(
                 f"{times_file}: expected {n} timestamps (one per image), found {times.shape[0]}"
@@ -103,7 +97,7 @@ def open_folder(
 
     poses_file = root / "poses.txt"
     if poses_file.is_file():
-        ptimes, poses = read_tum_trajectory(poses_file)
+        ptimes, poses = read_tum(poses_file)
         if poses.shape[0] != n:
             raise DatasetError(f"{poses_file}: expected {n} poses (one per image), found {poses.shape[0]}")
         for rec, t, pose in zip(records, ptimes, poses, strict=True):

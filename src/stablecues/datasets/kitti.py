@@ -21,7 +21,9 @@ from typing import Any, Literal
 import numpy as np
 
 from ..errors import DatasetError
-from .base import FrameRecord, SequenceDataset, list_images, match_by_stem, read_number_rows
+from ..imageio import list_images, match_by_stem
+from ..trajectory import read_kitti, read_times
+from .base import FrameRecord, SequenceDataset
 
 
 def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
@@ -49,18 +51,6 @@ def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
     if "P0" not in out:
         raise DatasetError(f"{path}: expected a P0 line, found keys {sorted(out)}")
     return out
-
-
-def read_kitti_poses(path: Path) -> np.ndarray:
-    """Read a KITTI pose file: (M, 4, 4) float64 camera-to-world poses.
-
-    Raises:
-        DatasetError: missing file or a line without 12 numbers.
-    """
-    rows = read_number_rows(path, 12, "KITTI poses (3x4 row-major)")
-    poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
-    poses[:, :3, :] = rows.reshape(-1, 3, 4)
-    return poses
 
 
 def _find_poses(root: Path) -> Path | None:
@@ -116,7 +106,7 @@ def open_kitti(
 
     times_file = root / "times.txt"
     if times_file.is_file():
-        times = read_number_rows(times_file, 1, "times")[:, 0]
+        times = read_times(times_file, "times")
         if times.shape[0] != n:
             raise DatasetError(
                 f"{times_file}: expected {n} timestamps (one per image), found {times.shape[0]}"
@@ -128,7 +118,7 @@ def open_kitti(
     calib = read_kitti_calib(calib_file) if calib_file.is_file() else None
     pose_file = Path(poses) if poses is not None else _find_poses(root)
     if pose_file is not None:
-        gt = read_kitti_poses(pose_file)
+        gt = read_kitti(pose_file)
         if gt.shape[0] != n:
             raise DatasetError(f"{pose_file}: expected {n} poses (one per image), found {gt.shape[0]}")
         if pname != "P0":

@@ -23,15 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
-from .base import (
-    FrameRecord,
-    SequenceDataset,
-    associate,
-    find_first,
-    list_images,
-    nearest,
-    read_tum_trajectory,
-)
+from ..imageio import list_images
+from ..trajectory import associate, nearest, read_tum
+from .base import FrameRecord, SequenceDataset, find_first
 
 TUM_DEPTH_FACTOR = 5000.0
 _TIMESTAMP_NAME = re.compile(r"^\d+(\.\d+)?$")
@@ -128,7 +122,7 @@ def open_tum(
 
     gt_file = Path(groundtruth) if groundtruth is not None else _find_groundtruth(root)
     if gt_file is not None:
-        gtimes, gposes = read_tum_trajectory(gt_file)
+        gtimes, gposes = read_tum(gt_file)
         idx = nearest(times, gtimes, max_difference)
         for rec, k in zip(records, idx, strict=True):
             if k >= 0:

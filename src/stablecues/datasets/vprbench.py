@@ -8,7 +8,7 @@ Layout::
 
 The sequence is every reference image, then every query: frame ``k < R`` is ``ref`` image ``k``
 and frame ``R + i`` is query ``i``. The loop ground truth maps onto these combined indices and
-marks only the query frames as queries (:class:`~stablecues.evaluation.groundtruth.GroundTruth`
+marks only the query frames as queries (:class:`~stablecues.groundtruth.GroundTruth`
 ``query_mask``), so detections made during the reference pass are not scored.
 """
 
@@ -17,7 +17,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import DatasetError
-from .base import FrameRecord, SequenceDataset, list_images
+from ..imageio import list_images
+from .base import FrameRecord, SequenceDataset
 
 GT_NAME = "ground_truth_new.npy"
 

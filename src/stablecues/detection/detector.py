@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..database import Database
-from ..datasets.base import Frame
+from ..types import Frame
 from ..errors import ConfigError, InputError
 from ..features import OrbExtractor
 from ..imageio import to_grey

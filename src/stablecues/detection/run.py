@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..config import to_dict
-from ..evaluation.runs import RunWriter
+from ..runs import RunWriter
 from .config import DetectorConfig
 from .decision import LoopDecision
 from .detector import LoopDetector

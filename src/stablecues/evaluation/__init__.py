@@ -12,8 +12,7 @@ Typical use::
 
 from __future__ import annotations
 
-from .evaluate import eval_file_name, evaluate_run, load_evaluation, run_detections, save_evaluation
-from .groundtruth import (
+from ..groundtruth import (
     GroundTruth,
     check_loop_matrix,
     fit_view,
@@ -26,6 +25,8 @@ from .groundtruth import (
     sha256_file,
     vprbench_matrix,
 )
+from ..runs import Run, RunWriter, format_timing_table, load_run, timing_table
+from .evaluate import eval_file_name, evaluate_run, load_evaluation, run_detections, save_evaluation
 from .metrics import (
     PROTOCOLS,
     Evaluation,
@@ -36,8 +37,6 @@ from .metrics import (
     pr_curve,
     recall_at_full_precision,
 )
-from .runs import Run, RunWriter, load_run
-from .timing import format_timing_table, timing_table
 
 __all__ = [
     "PROTOCOLS",

@@ -8,9 +8,9 @@ from typing import Any, Literal
 import numpy as np
 
 from ..errors import DatasetError, InputError
-from .groundtruth import GroundTruth
+from ..groundtruth import GroundTruth
+from ..runs import Run, read_json, write_json
 from .metrics import PROTOCOLS, Evaluation, ProtocolName, evaluate_detections
-from .runs import Run, read_json, write_json
 
 DetectionChoice = Literal["accepted", "all"]
 ScoreChoice = Literal["score", "raw_score"]

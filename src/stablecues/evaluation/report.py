@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import StableCuesError
+from ..groundtruth import GroundTruth, fit_view, load_ground_truth
+from ..runs import Run
 from .evaluate import evaluate_run
-from .groundtruth import GroundTruth, fit_view, load_ground_truth
 from .plots import figure_png, new_figure, plot_matrix, plot_pr_curves, plot_status_counts
-from .runs import Run
 
 logger = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ A recording is a folder of images plus their capture times, paired with a flight
 * a pose per frame is interpolated from a navigation solution (this package's EKF, the
   autopilot's own, or the GNSS track alone) and written in TUM format
   (``t x y z qx qy qz qw``, camera-to-world, ENU metres about the first GNSS fix);
-* loop ground truth from those poses uses :func:`stablecues.evaluation.groundtruth.loops_from_poses`
+* loop ground truth from those poses uses :func:`stablecues.groundtruth.loops_from_poses`
   (the project's convention: (N, N) bool, ``gt[i, j]`` for query ``i`` and earlier frame ``j``).
 """
 
@@ -636,7 +636,7 @@ def loops_from_trajectory(
 ) -> np.ndarray:
     """Loop ground truth from poses, in the project's convention.
 
-    Wraps :func:`stablecues.evaluation.groundtruth.loops_from_poses`, taking the headings from
+    Wraps :func:`stablecues.groundtruth.loops_from_poses`, taking the headings from
     the pose quaternions (:func:`yaw_of`) when an angle threshold is given.
 
     Args:
@@ -654,7 +654,7 @@ def loops_from_trajectory(
     Raises:
         InputError: inconsistent options or shapes.
     """
-    from ..evaluation.groundtruth import loops_from_poses
+    from ..groundtruth import loops_from_poses
 
     yaws = None
     if max_angle_deg is not None:

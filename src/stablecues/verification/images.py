@@ -60,7 +60,7 @@ class PairVerification:
 def _load(image: np.ndarray | str | Path, *, unchanged: bool = False) -> np.ndarray:
     if isinstance(image, np.ndarray):
         return image
-    return read_image(image, unchanged=unchanged)
+    return read_image(image, "unchanged" if unchanged else "bgr")
 
 
 class ImagePairVerifier:

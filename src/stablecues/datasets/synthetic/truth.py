@@ -4,7 +4,7 @@ The rule (:class:`LoopTruthConfig`):
 
 * **Same direction.** Frames ``i > j`` close a loop when the cameras are within ``max_distance``
   metres and their headings within ``max_angle_deg``, and ``i - j >= min_gap_frames``. This is
-  what :func:`stablecues.evaluation.groundtruth.loops_from_poses` computes.
+  what :func:`stablecues.groundtruth.loops_from_poses` computes.
 * **Other headings** (``opposite``): a forward-looking camera driving a street the other way sees
   the other side of each facade's field of view: the buildings it sees at a given spot are mostly
   ones the first pass saw from behind its shoulder or at grazing angles, which no local-feature
@@ -106,7 +106,7 @@ def loop_truth(
     Raises:
         InputError: shapes disagree, or visibility is missing for "covisible".
     """
-    from ...evaluation.groundtruth import loops_from_poses
+    from ...groundtruth import loops_from_poses
 
     config.validate()
     positions = np.asarray(positions, float)
