@@ -16,8 +16,30 @@ MOVED: dict[str, str] = {
     "stablecues.evaluation.groundtruth": "stablecues.groundtruth",
     "stablecues.evaluation.runs": "stablecues.runs.store",
     "stablecues.evaluation.timing": "stablecues.runs.timing",
+    "stablecues.verification.images": "stablecues.detection.pair",
 }
 """old module name -> new module name."""
+
+
+DEPRECATED_NAMES: dict[str, dict[str, str]] = {
+    "stablecues.verification": {
+        "Frame": "stablecues.detection.pair:PairFrame",
+        "ImagePairVerifier": "stablecues.detection.pair:ImagePairVerifier",
+        "PairVerification": "stablecues.detection.pair:PairVerification",
+    },
+}
+"""package -> {old name: "new.module:name"}: names a package exported that now live above it."""
+
+
+def moved_name(package: str, name: str) -> object:
+    """A package's ``__getattr__`` for :data:`DEPRECATED_NAMES` (PEP 562), with a warning."""
+    target = DEPRECATED_NAMES.get(package, {}).get(name)
+    if target is None:
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+    module, attr = target.split(":")
+    warnings.warn(f"{package}.{name} moved to {module}.{attr}; the old name goes in 0.3",
+                  DeprecationWarning, stacklevel=3)
+    return getattr(importlib.import_module(module), attr)
 
 
 def moved(old: str) -> None:

@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from conftest import shared_path
+from stablecues.detection.pair import ImagePairVerifier, PairFrame
 from stablecues.geometry import Calibration, PinholeCamera, load_calibration, rotation_angle_deg
-from stablecues.verification import Frame, ImagePairVerifier, Method, Status
+from stablecues.verification import Method, Status
 
 
 @pytest.fixture(scope="module")
-def euroc() -> tuple[ImagePairVerifier, list[Frame]]:
+def euroc() -> tuple[ImagePairVerifier, list[PairFrame]]:
     folder = shared_path("euroc", "loop_pairs")
     pipeline = ImagePairVerifier(load_calibration(folder / "sensorLeft.yaml"))  # default settings
     frames = [
@@ -24,7 +25,7 @@ def euroc() -> tuple[ImagePairVerifier, list[Frame]]:
 
 @pytest.mark.parametrize(("query", "candidate"), [(1, 0), (0, 1), (3, 2), (2, 3)])
 def test_euroc_true_loops_are_accepted(
-    euroc: tuple[ImagePairVerifier, list[Frame]], query: int, candidate: int
+    euroc: tuple[ImagePairVerifier, list[PairFrame]], query: int, candidate: int
 ) -> None:
     pipeline, frames = euroc
     res = pipeline.verify_frames(frames[query], frames[candidate]).verification
@@ -40,7 +41,7 @@ def test_euroc_true_loops_are_accepted(
     ("query", "candidate"), [(2, 0), (3, 0), (2, 1), (3, 1), (0, 2), (0, 3), (1, 2), (1, 3)]
 )
 def test_euroc_different_places_are_rejected(
-    euroc: tuple[ImagePairVerifier, list[Frame]], query: int, candidate: int
+    euroc: tuple[ImagePairVerifier, list[PairFrame]], query: int, candidate: int
 ) -> None:
     pipeline, frames = euroc
     res = pipeline.verify_frames(frames[query], frames[candidate]).verification
@@ -66,7 +67,7 @@ def _pose(row: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def kinect() -> tuple[ImagePairVerifier, dict[int, Frame], np.ndarray, Path]:
+def kinect() -> tuple[ImagePairVerifier, dict[int, PairFrame], np.ndarray, Path]:
     folder = shared_path("rgbd_kinect5")
     calib = Calibration(left=PinholeCamera(518.0, 519.0, 325.5, 253.5, 640, 480), depth_scale=1000.0)
     pipeline = ImagePairVerifier(calib)
@@ -79,7 +80,7 @@ def kinect() -> tuple[ImagePairVerifier, dict[int, Frame], np.ndarray, Path]:
 
 @pytest.mark.parametrize(("query", "candidate"), [(2, 1), (3, 2)])
 def test_kinect_relative_pose(
-    kinect: tuple[ImagePairVerifier, dict[int, Frame], np.ndarray, Path], query: int, candidate: int
+    kinect: tuple[ImagePairVerifier, dict[int, PairFrame], np.ndarray, Path], query: int, candidate: int
 ) -> None:
     pipeline, frames, poses, _ = kinect
     res = pipeline.verify_frames(frames[query], frames[candidate]).verification

@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     from ..config import to_dict
     from ..errors import InputError
     from ..geometry import load_calibration, load_euroc_stereo, rotation_angle_deg
-    from ..verification import ImagePairVerifier, preset
+    from ..detection.pair import ImagePairVerifier
+    from ..verification import preset
 
     if (args.right_a is None) != (args.right_b is None):
         raise InputError("give --right-a and --right-b together")

@@ -18,13 +18,23 @@ import numpy as np
 from ..errors import DatasetError
 from ..geometry.calibration import load_calibration
 from ..geometry.camera import Calibration
-from ..imageio import read_depth, read_image, read_labels
+from ..imageio import ImageMode, read_depth, read_image, read_labels
 from ..types import Frame
 
 if TYPE_CHECKING:
     from ..groundtruth import GroundTruth
 
-__all__ = ["Dataset", "Frame", "FrameRecord", "SequenceDataset", "find_first", "load_calibration_lazily"]
+__all__ = [
+    "Dataset",
+    "Frame",
+    "FrameRecord",
+    "SequenceDataset",
+    "attach_poses",
+    "attach_times",
+    "check_one_per_image",
+    "find_first",
+    "load_calibration_lazily",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +129,7 @@ class SequenceDataset:
             raise IndexError(f"frame {index} out of range for {n} frames")
         index %= n
         rec = self.records[index]
-        mode = "8bit-grey" if self.grey else "8bit"
+        mode: ImageMode = "8bit-grey" if self.grey else "8bit"
         image = read_image(rec.image, mode)
         right = read_image(rec.right, mode) if rec.right is not None else None
         depth = read_depth(rec.depth, self.depth_factor) if rec.depth is not None else None
@@ -235,3 +245,35 @@ def find_first(folder: Path, names: Sequence[str]) -> Path | None:
         if p.exists():
             return p
     return None
+
+
+def check_one_per_image(path: Path, what: str, n_images: int, found: int) -> None:
+    """Raise unless a file read from ``path`` gave one ``what`` ("timestamps", "poses") per image.
+
+    Raises:
+        DatasetError: ``found`` differs from ``n_images``.
+    """
+    if found != n_images:
+        raise DatasetError(f"{path}: expected {n_images} {what} (one per image), found {found}")
+
+
+def attach_times(records: Sequence[FrameRecord], path: Path, times: np.ndarray) -> None:
+    """Give each record its timestamp from ``times``, read from ``path`` (named in the error).
+
+    Raises:
+        DatasetError: ``times`` does not have one entry per record.
+    """
+    check_one_per_image(path, "timestamps", len(records), times.shape[0])
+    for rec, t in zip(records, times, strict=True):
+        rec.timestamp = float(t)
+
+
+def attach_poses(records: Sequence[FrameRecord], path: Path, poses: np.ndarray) -> None:
+    """Give each record its (4, 4) pose from ``poses``, read from ``path`` (named in the error).
+
+    Raises:
+        DatasetError: ``poses`` does not have one pose per record.
+    """
+    check_one_per_image(path, "poses", len(records), poses.shape[0])
+    for rec, pose in zip(records, poses, strict=True):
+        rec.pose = pose

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -141,113 +142,48 @@ class Verifier:
             cross_check=cfg.cross_check,
         )
         timings = {"matching": (time.perf_counter() - t0) * 1e3}
-
-        method = Method(cfg.method)
-        fallback = False
-        if method is Method.TRIANGLES and (query.points is None or candidate.points is None):
-            fallback = True
-            method = (
-                Method.PNP if candidate.points is not None and self.camera is not None else Method.FUNDAMENTAL
-            )
-        elif method is Method.PNP and (candidate.points is None or self.camera is None):
-            fallback = True
-            method = Method.FUNDAMENTAL
-        return self._with_pixels(
-            self._decide(query, candidate, matches, method, fallback, t0, timings), query, candidate
-        )
-
-    def _decide(
-        self,
-        query: View,
-        candidate: View,
-        matches: Matches,
-        method: Method,
-        fallback: bool,
-        t0: float,
-        timings: dict[str, float],
-    ) -> Verification:
-        cfg = self.config
+        configured = Method(cfg.method)
+        method = self._method_for(configured, query, candidate)
+        fallback = method is not configured
         if fallback and not cfg.fallback:
-            return self._finish(
-                False,
-                Method(cfg.method),
-                Status.TOO_FEW_3D,
-                "no 3D points (fallback disabled)",
-                matches,
-                None,
-                t0,
-                timings,
-            )
+            ctx = _Context(query, candidate, matches, configured, False, t0, timings)
+            return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")
         if fallback:
             logger.debug("no 3D points for %s: falling back to %s", cfg.method, method.value)
+        ctx = _Context(query, candidate, matches, method, fallback, t0, timings)
+        return self._checks[method](ctx)
 
-        if method is Method.FUNDAMENTAL:
-            return self._fundamental(query, candidate, matches, fallback, t0, timings)
-        if method is Method.PNP:
-            return self._pnp_only(query, candidate, matches, fallback, t0, timings)
-        return self._triangles(query, candidate, matches, t0, timings)
+    @property
+    def _checks(self) -> dict[Method, Callable[[_Context], Verification]]:
+        """The verifier of each method."""
+        return {
+            Method.TRIANGLES: self._triangles,
+            Method.PNP: self._pnp_only,
+            Method.FUNDAMENTAL: self._fundamental,
+        }
 
-    def _finish(
-        self,
-        accepted: bool,
-        method: Method,
-        status: Status,
-        reason: str,
-        matches: Matches,
-        inliers: np.ndarray | None,
-        t0: float,
-        timings: dict[str, float],
-        **extra: object,
-    ) -> Verification:
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        if inliers is None:
-            inliers = np.zeros(len(matches), bool)
-        return Verification(
-            accepted=accepted,
-            method=method,
-            status=status,
-            reason=reason,
-            matches=matches,
-            inliers=inliers,
-            timings=timings,
-            **extra,  # type: ignore[arg-type]
-        )
+    def _method_for(self, configured: Method, query: View, candidate: View) -> Method:
+        """The method that can run on these views: the configured one, or its fallback (PnP when
+        only the candidate has 3D points, the fundamental matrix when it has none)."""
+        if configured is Method.TRIANGLES and (query.points is None or candidate.points is None):
+            return (
+                Method.PNP if candidate.points is not None and self.camera is not None else Method.FUNDAMENTAL
+            )
+        if configured is Method.PNP and (candidate.points is None or self.camera is None):
+            return Method.FUNDAMENTAL
+        return configured
 
-    @staticmethod
-    def _with_pixels(result: Verification, query: View, candidate: View) -> Verification:
-        m = result.matches
-        return dataclasses.replace(
-            result,
-            pixels_query=query.features.keypoints[m.query],
-            pixels_candidate=candidate.features.keypoints[m.candidate],
-        )
-
-    def _fundamental(
-        self,
-        query: View,
-        candidate: View,
-        matches: Matches,
-        fallback: bool,
-        t0: float,
-        timings: dict[str, float],
-    ) -> Verification:
+    def _fundamental(self, ctx: _Context) -> Verification:
         cfg = self.config
-        note = " (no 3D points: fundamental-matrix fallback)" if fallback else ""
+        matches = ctx.matches
+        note = " (no 3D points: fundamental-matrix fallback)" if ctx.fallback else ""
         if len(matches) < cfg.min_fundamental_inliers:
-            return self._finish(
-                False,
-                Method.FUNDAMENTAL,
-                Status.TOO_FEW_MATCHES,
-                f"{len(matches)} matches, need {cfg.min_fundamental_inliers}{note}",
-                matches,
-                None,
-                t0,
-                timings,
-                fallback=fallback,
+            return ctx.finish(
+                Status.TOO_FEW_MATCHES, f"{len(matches)} matches, need {cfg.min_fundamental_inliers}{note}"
             )
         t = time.perf_counter()
-        pq = query.features.keypoints[matches.query].astype(np.float64)
-        pc = candidate.features.keypoints[matches.candidate].astype(np.float64)
+        pq = ctx.query.features.keypoints[matches.query].astype(np.float64)
+        pc = ctx.candidate.features.keypoints[matches.candidate].astype(np.float64)
         if self.camera is not None and self.camera.has_distortion:
             pq = self.camera.undistort_points(pq)
             pc = self.camera.undistort_points(pc)
@@ -258,41 +194,28 @@ class Verifier:
             confidence=cfg.fundamental_confidence,
             max_iterations=cfg.fundamental_iterations,
         )
-        timings["fundamental"] = (time.perf_counter() - t) * 1e3
+        ctx.timings["fundamental"] = (time.perf_counter() - t) * 1e3
         n_in = int(inliers.sum())
         if f is None:
-            return self._finish(
-                False,
-                Method.FUNDAMENTAL,
+            return ctx.finish(
                 Status.FUNDAMENTAL_FAILED,
                 f"no fundamental matrix from {len(matches)} matches{note}",
-                matches,
-                inliers,
-                t0,
-                timings,
-                fallback=fallback,
+                inliers=inliers,
             )
         accepted = n_in >= cfg.min_fundamental_inliers
-        return self._finish(
-            accepted,
-            Method.FUNDAMENTAL,
+        return ctx.finish(
             Status.ACCEPTED if accepted else Status.TOO_FEW_FUNDAMENTAL_INLIERS,
             f"{n_in} of {len(matches)} matches fit a fundamental matrix, "
             f"need {cfg.min_fundamental_inliers}{note}",
-            matches,
-            inliers,
-            t0,
-            timings,
-            fallback=fallback,
+            inliers=inliers,
             fundamental=f,
         )
 
-    def _pose(
-        self, query: View, candidate: View, matches: Matches, timings: dict[str, float]
-    ) -> PoseEstimate:
+    def _pose(self, ctx: _Context) -> PoseEstimate:
         """PnP of the candidate's 3D points against the query's keypoints; the refinement is
         symmetric when the query has 3D points too."""
         t = time.perf_counter()
+        query, candidate, matches = ctx.query, ctx.candidate, ctx.matches
         if candidate.points is None or self.camera is None:
             raise ConfigError("PnP needs candidate 3D points and the query camera")
         pixel_sigma, scale = (self.noise.pixel_sigma, self.noise.scale_factor) if self.noise else (1.0, 1.2)
@@ -317,106 +240,44 @@ class Verifier:
             pixels_candidate=cpix,
             sigma_candidate=sc,
         )
-        timings["pnp"] = (time.perf_counter() - t) * 1e3
+        ctx.timings["pnp"] = (time.perf_counter() - t) * 1e3
         return pose
 
-    def _pnp_only(
-        self,
-        query: View,
-        candidate: View,
-        matches: Matches,
-        fallback: bool,
-        t0: float,
-        timings: dict[str, float],
-    ) -> Verification:
+    def _pnp_only(self, ctx: _Context) -> Verification:
         cfg = self.config
-        note = " (query has no 3D points: PnP fallback)" if fallback else ""
+        matches, candidate = ctx.matches, ctx.candidate
+        note = " (query has no 3D points: PnP fallback)" if ctx.fallback else ""
         need = max(cfg.min_pnp_inliers, 4)
         if len(matches) < need:
-            return self._finish(
-                False,
-                Method.PNP,
-                Status.TOO_FEW_MATCHES,
-                f"{len(matches)} matches, need {need}{note}",
-                matches,
-                None,
-                t0,
-                timings,
-                fallback=fallback,
-            )
+            return ctx.finish(Status.TOO_FEW_MATCHES, f"{len(matches)} matches, need {need}{note}")
         if candidate.points is not None and int(candidate.points.valid[matches.candidate].sum()) < need:
             n3 = int(candidate.points.valid[matches.candidate].sum())
-            return self._finish(
-                False,
-                Method.PNP,
-                Status.TOO_FEW_3D,
-                f"{n3} matches with a 3D point, need {need}{note}",
-                matches,
-                None,
-                t0,
-                timings,
-                fallback=fallback,
-            )
-        pose = self._pose(query, candidate, matches, timings)
-        return self._decide_pose(pose, Method.PNP, matches, t0, timings, f"{note}", fallback=fallback)
+            return ctx.finish(Status.TOO_FEW_3D, f"{n3} matches with a 3D point, need {need}{note}")
+        return self._decide_pose(ctx, self._pose(ctx), note)
 
-    def _decide_pose(
-        self,
-        pose: PoseEstimate,
-        method: Method,
-        matches: Matches,
-        t0: float,
-        timings: dict[str, float],
-        prefix: str,
-        **extra: object,
-    ) -> Verification:
-        cfg = self.config
+    def _decide_pose(self, ctx: _Context, pose: PoseEstimate, prefix: str, **extra: Any) -> Verification:
+        need = self.config.min_pnp_inliers
         if not pose.success:
-            return self._finish(
-                False,
-                method,
-                Status.PNP_FAILED,
-                f"{prefix}PnP found no pose".strip(),
-                matches,
-                None,
-                t0,
-                timings,
-                **extra,
-            )
-        accepted = pose.n_inliers >= cfg.min_pnp_inliers
-        return self._finish(
-            accepted,
-            method,
-            Status.ACCEPTED if accepted else Status.TOO_FEW_PNP_INLIERS,
-            f"{prefix}{pose.n_inliers} PnP inliers (need {cfg.min_pnp_inliers}), "
-            f"rmse {pose.rmse_px:.2f} px".strip(),
-            matches,
-            pose.inliers,
-            t0,
-            timings,
+            return ctx.finish(Status.PNP_FAILED, f"{prefix}PnP found no pose".strip(), **extra)
+        return ctx.finish(
+            Status.ACCEPTED if pose.n_inliers >= need else Status.TOO_FEW_PNP_INLIERS,
+            f"{prefix}{pose.n_inliers} PnP inliers (need {need}), rmse {pose.rmse_px:.2f} px".strip(),
+            inliers=pose.inliers,
             rotation=pose.rotation,
             translation=pose.translation,
             rmse_px=pose.rmse_px,
             **extra,
         )
 
-    def _triangles(
-        self, query: View, candidate: View, matches: Matches, t0: float, timings: dict[str, float]
-    ) -> Verification:
+    def _triangles(self, ctx: _Context) -> Verification:
         cfg = self.config
+        query, candidate, matches = ctx.query, ctx.candidate, ctx.matches
         if query.points is None or candidate.points is None:  # handled by verify(); keeps mypy informed
             raise ConfigError("triangle check needs 3D points in both frames")
         need = cfg.triangles_needed
         if len(matches) < 3 * need:
-            return self._finish(
-                False,
-                Method.TRIANGLES,
-                Status.TOO_FEW_MATCHES,
-                f"{len(matches)} matches, need {3 * need} for {need} triangles",
-                matches,
-                None,
-                t0,
-                timings,
+            return ctx.finish(
+                Status.TOO_FEW_MATCHES, f"{len(matches)} matches, need {3 * need} for {need} triangles"
             )
         t = time.perf_counter()
         tc: TriangleCheck = check_triangles(
@@ -424,52 +285,69 @@ class Verifier:
             candidate.points.subset(matches.candidate),
             self._triangle_config,
         )
-        timings["triangles"] = (time.perf_counter() - t) * 1e3
-        extra: dict[str, object] = {"triangles": tc.triangles, "n_triangles_agree": tc.n_agree}
+        ctx.timings["triangles"] = (time.perf_counter() - t) * 1e3
+        extra: dict[str, Any] = {"triangles": tc.triangles, "n_triangles_agree": tc.n_agree}
         summary = f"{tc.n_agree} of {cfg.n_triangles} triangles agree ({tc.n_checked} formed), need {need}"
+        vertices = _vertex_mask(tc, len(matches))
         if tc.n_agree < need:
-            if tc.n_usable < 3 * need:
-                status = Status.TOO_FEW_3D
-                summary += f"; only {tc.n_usable} matches have 3D in both frames"
-            elif tc.n_checked < need or (cfg.acceptance == "all" and tc.n_checked < cfg.n_triangles):
-                status = Status.TOO_FEW_TRIANGLES
-            else:
-                status = Status.TRIANGLES_DISAGREE
-            vertices = self._vertex_mask(tc, len(matches))
-            return self._finish(
-                False, Method.TRIANGLES, status, summary, matches, vertices, t0, timings, **extra
-            )
+            status, note = self._triangle_rejection(tc)
+            return ctx.finish(status, summary + note, inliers=vertices, **extra)
         if self.camera is None:  # min_pnp_inliers == 0 (checked in __init__): no pose
-            return self._finish(
-                True,
-                Method.TRIANGLES,
-                Status.ACCEPTED,
-                summary + "; no camera, no pose",
-                matches,
-                self._vertex_mask(tc, len(matches)),
-                t0,
-                timings,
-                **extra,
-            )
-        pose = self._pose(query, candidate, matches, timings)
+            return ctx.finish(Status.ACCEPTED, summary + "; no camera, no pose", inliers=vertices, **extra)
+        pose = self._pose(ctx)
         if not pose.success and cfg.min_pnp_inliers == 0:  # PnP only gives the pose here, no vote
-            return self._finish(
-                True,
-                Method.TRIANGLES,
-                Status.ACCEPTED,
-                summary + "; PnP found no pose",
-                matches,
-                self._vertex_mask(tc, len(matches)),
-                t0,
-                timings,
-                **extra,
-            )
-        return self._decide_pose(pose, Method.TRIANGLES, matches, t0, timings, summary + "; ", **extra)
+            return ctx.finish(Status.ACCEPTED, summary + "; PnP found no pose", inliers=vertices, **extra)
+        return self._decide_pose(ctx, pose, summary + "; ", **extra)
 
-    @staticmethod
-    def _vertex_mask(tc: TriangleCheck, m: int) -> np.ndarray:
-        mask = np.zeros(m, bool)
-        for tri in tc.triangles:
-            if tri.agree:
-                mask[list(tri.matches)] = True
-        return mask
+    def _triangle_rejection(self, tc: TriangleCheck) -> tuple[Status, str]:
+        """Why too few triangles agreed, and a note for the reason line."""
+        cfg = self.config
+        need = cfg.triangles_needed
+        if tc.n_usable < 3 * need:
+            return Status.TOO_FEW_3D, f"; only {tc.n_usable} matches have 3D in both frames"
+        if tc.n_checked < need or (cfg.acceptance == "all" and tc.n_checked < cfg.n_triangles):
+            return Status.TOO_FEW_TRIANGLES, ""
+        return Status.TRIANGLES_DISAGREE, ""
+
+
+def _vertex_mask(tc: TriangleCheck, m: int) -> np.ndarray:
+    """(m,) bool: the matches that are vertices of agreeing triangles."""
+    mask = np.zeros(m, bool)
+    for tri in tc.triangles:
+        if tri.agree:
+            mask[list(tri.matches)] = True
+    return mask
+
+
+@dataclass(eq=False)
+class _Context:
+    """One verification in progress, and the one place its :class:`Verification` is built."""
+
+    query: View
+    candidate: View
+    matches: Matches
+    method: Method
+    fallback: bool
+    t0: float
+    timings: dict[str, float]
+
+    def finish(
+        self, status: Status, reason: str, *, inliers: np.ndarray | None = None, **geometry: Any
+    ) -> Verification:
+        """The result: accepted exactly when ``status`` is ACCEPTED; ``geometry`` holds the
+        optional fields (triangles, pose, fundamental matrix) of :class:`Verification`."""
+        self.timings["total"] = (time.perf_counter() - self.t0) * 1e3
+        m = self.matches
+        return Verification(
+            accepted=status is Status.ACCEPTED,
+            method=self.method,
+            status=status,
+            reason=reason,
+            matches=m,
+            inliers=np.zeros(len(m), bool) if inliers is None else inliers,
+            fallback=self.fallback,
+            timings=self.timings,
+            pixels_query=self.query.features.keypoints[m.query],
+            pixels_candidate=self.candidate.features.keypoints[m.candidate],
+            **geometry,
+        )

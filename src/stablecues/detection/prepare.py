@@ -1,0 +1,263 @@
+"""One frame-preparation path: extract, mask, transform, lift.
+
+The loop detector and the two-image verifier (``stablecues verify``) both turn a
+:class:`~stablecues.types.Frame` into a :class:`PreparedFrame` here, so a pair verified on the
+command line is checked exactly as the detector would check it:
+
+1. features: the SLAM system's own, or extracted on the frame's image as stored (raw, not
+   rectified: keypoints refer to the camera the calibration describes);
+2. semantic selection (``DetectorConfig.masking``), from the network or the frame's labels;
+3. the BoW vector and the direct index from the vocabulary;
+4. 3D points per kept feature, from the first source the frame has: map points handed in,
+   a stereo pair (a raw pair is rectified inside the lifter, whose remap tables are cached per
+   calibration, and the points rotated back into the raw left camera), or a depth image.
+
+It also owns what depends only on the calibration: the 3D noise model and the
+:class:`~stablecues.verification.Verifier` for frames of that camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import merge
+from ..errors import ConfigError, InputError
+from ..features import OrbExtractor
+from ..geometry.camera import Calibration
+from ..geometry.depth import DepthConfig, lift_depth, lift_map_points
+from ..geometry.points import NoiseModel, Points3D
+from ..geometry.stereo import StereoConfig, StereoLifter
+from ..imageio import to_grey
+from ..semantics.classes import NUM_CLASSES
+from ..semantics.inference import SegmentationModel, SegmentationResult
+from ..semantics.masking import select_features
+from ..types import BowVector, Features, FeatureVector, Frame
+from ..verification.verifier import Verifier, View
+from ..vocabulary import Vocabulary
+from .config import DetectorConfig
+
+__all__ = ["FramePreparer", "PreparedFrame", "Segmenter"]
+
+Segmenter = Callable[[np.ndarray], SegmentationResult]
+"""``image -> SegmentationResult``: the shipped network, or any replacement."""
+
+# map points from a SLAM system with nothing known of their sensor: 1 % depth noise at 1 m
+_MAP_POINT_DEPTH_NOISE = 0.01
+_MAP_POINT_FOCAL = 500.0
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedFrame:
+    """One frame, ready to query, verify and store.
+
+    Attributes:
+        features: the kept features (all of them without masking or when masking fell back).
+        bow: their bag-of-words vector.
+        fvec: their direct index.
+        points: 3D point per kept feature in the frame's camera, or None without 3D.
+        calibration: the calibration the frame was prepared with (its own, else the default).
+        n_features: features before semantic selection.
+        mask_fallback: masking kept too few features, so every feature was kept.
+        timings: milliseconds per stage (extract, segment, mask, transform, lift).
+        t_start: ``time.perf_counter()`` when preparation began.
+    """
+
+    features: Features
+    bow: BowVector
+    fvec: FeatureVector
+    points: Points3D | None
+    calibration: Calibration | None
+    n_features: int
+    mask_fallback: bool
+    timings: dict[str, float] = field(default_factory=dict)
+    t_start: float = 0.0
+
+    @property
+    def view(self) -> View:
+        """What the verifier needs of this frame."""
+        return View(self.features, self.fvec, self.points)
+
+
+class _Laps:
+    """Milliseconds per stage, measured between consecutive calls."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+        self.start = self._t = time.perf_counter()
+
+    def __call__(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.timings[stage] = (now - self._t) * 1e3
+        self._t = now
+
+
+class FramePreparer:
+    """Prepares frames for one detector configuration and vocabulary.
+
+    Args:
+        config: the detector settings (features, masking, semantic source, verification).
+        vocabulary: the vocabulary for BoW vectors and direct indexes.
+        calibration: the calibration used for frames that carry none.
+        segmenter: replaces the shipped network (``image -> SegmentationResult``).
+        stereo: sparse stereo matching settings.
+        depth: depth-image lifting settings.
+    """
+
+    def __init__(
+        self,
+        config: DetectorConfig,
+        vocabulary: Vocabulary,
+        calibration: Calibration | None = None,
+        segmenter: Segmenter | None = None,
+        *,
+        stereo: StereoConfig | None = None,
+        depth: DepthConfig | None = None,
+    ) -> None:
+        self.config = config
+        self.vocabulary = vocabulary
+        self.calibration = calibration
+        self.extractor = OrbExtractor(config.features)
+        self.stereo_config = stereo or StereoConfig()
+        self.depth_config = depth or DepthConfig()
+        self._segmenter = segmenter
+        self._lifters: dict[int, StereoLifter] = {}
+        self._verifiers: dict[int, Verifier] = {}
+
+    # ------------------------------------------------------------------ per calibration
+    def calibration_of(self, frame: Frame) -> Calibration | None:
+        """The frame's own calibration, else the default one."""
+        return frame.calibration if frame.calibration is not None else self.calibration
+
+    def lifter(self, calib: Calibration) -> StereoLifter:
+        """The stereo lifter of a stereo calibration (built once; it caches remap tables)."""
+        lifter = self._lifters.get(id(calib))
+        if lifter is None:
+            lifter = self._lifters[id(calib)] = StereoLifter(calib, self.stereo_config)
+        return lifter
+
+    def noise(self, calib: Calibration | None) -> NoiseModel:
+        """The noise model of the 3D points of frames with this calibration.
+
+        The stereo lifter's own (rectified focal, its disparity noise) for stereo rigs, the
+        calibration's for depth cameras, and a generic one for map points without a stereo or
+        depth calibration, so that query and stored points always get the same model.
+        """
+        if calib is not None and calib.is_stereo:
+            return self.lifter(calib).noise
+        if calib is not None:
+            try:
+                return NoiseModel.for_calibration(calib)
+            except ConfigError:
+                pass
+        focal = calib.left.fx if calib is not None else _MAP_POINT_FOCAL
+        return NoiseModel(_MAP_POINT_DEPTH_NOISE, focal)
+
+    def verifier(self, calib: Calibration | None) -> Verifier:
+        """The verifier for frames of this calibration (built once).
+
+        Raises:
+            ConfigError: verification is off, or PnP verification without a calibration.
+        """
+        cfg = self.config.verification
+        if cfg is None:
+            raise ConfigError("verification is off in this configuration")
+        verifier = self._verifiers.get(id(calib))
+        if verifier is None:
+            if calib is None:
+                if cfg.method == "pnp":
+                    raise ConfigError("PnP verification needs a calibration (the query camera)")
+                verifier = Verifier(merge(cfg, {"min_pnp_inliers": 0}), noise=self.noise(None))
+            else:
+                verifier = Verifier(cfg, calib.left, self.noise(calib))
+            self._verifiers[id(calib)] = verifier
+        return verifier
+
+    # ------------------------------------------------------------------ the path
+    def prepare(self, frame: Frame, features: Features | None = None) -> PreparedFrame:
+        """Features, semantic selection, BoW vector and direct index, 3D points of one frame.
+
+        Args:
+            frame: the frame.
+            features: the SLAM system's own features (in the order of ``frame.points3d``);
+                extracted here when None.
+
+        Raises:
+            InputError: map points without the features they belong to, a frame without the
+                label image that ``semantic_source="labels"`` needs, or malformed 3D input.
+        """
+        laps = _Laps()
+        calib = self.calibration_of(frame)
+        if features is None:
+            if frame.points3d is not None:
+                raise InputError(f"frame {frame.index}: map points need the SLAM system's own "
+                                 "features (process(frame, features=...)) to pair with")
+            features = self.extractor.extract(to_grey(frame.image, f"frame {frame.index} image"))
+        laps("extract")
+        n_features = len(features)
+        features, keep, fallback = self._select(frame, features, laps)
+        bow, fvec = self.vocabulary.transform(features.descriptors)
+        laps("transform")
+        points = None
+        if self.config.verification is not None:
+            if frame.points3d is not None and keep is not None:
+                frame = dataclasses.replace(frame, points3d=np.asarray(frame.points3d)[keep])
+            points = self._lift(frame, features, calib)
+            laps("lift")
+        return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, laps.timings,
+                             laps.start)
+
+    def _select(
+        self, frame: Frame, features: Features, laps: _Laps
+    ) -> tuple[Features, np.ndarray | None, bool]:
+        """Semantic selection: (kept features, indices kept or None for all, fell back)."""
+        masking = self.config.masking
+        if masking is None or masking.mode == "none" or not len(features):
+            return features, None, False
+        seg = self.segment(frame)
+        laps("segment")
+        kept, report = select_features(features, seg, masking)
+        laps("mask")
+        fallback = bool(report.fallback)
+        return kept, (None if fallback else np.flatnonzero(report.passed)), fallback
+
+    def segment(self, frame: Frame) -> SegmentationResult:
+        """The frame's segmentation: its label image (``semantic_source="labels"``) or the network."""
+        if self.config.semantic_source == "labels":
+            if frame.labels is None:
+                raise InputError(f"frame {frame.index} ({frame.name}): semantic_source='labels' but "
+                                 "the frame has no label image")
+            lab = np.asarray(frame.labels, np.uint8)
+            h, w = lab.shape
+            return SegmentationResult(lab, np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+                                      0, np.zeros((NUM_CLASSES, 1, 1), np.float32))
+        if self._segmenter is None:
+            model = SegmentationModel.load()
+            samples = self.config.segmentation_samples
+            self._segmenter = lambda image: model.predict(image, samples)
+        return self._segmenter(frame.image)
+
+    def _lift(self, frame: Frame, features: Features, calib: Calibration | None) -> Points3D | None:
+        """3D points of the features in the frame's camera, or None when the frame has no 3D."""
+        try:
+            if frame.points3d is not None:
+                pts = np.asarray(frame.points3d)
+                if pts.shape != (len(features), 3):
+                    raise InputError(f"points3d has shape {pts.shape}, expected ({len(features)}, 3), "
+                                     "one per feature")
+                return lift_map_points(pts, self.noise(calib), octaves=features.octaves)
+            if calib is None:
+                return None
+            if frame.right is not None and calib.is_stereo:
+                return self.lifter(calib).lift(features, frame.image, frame.right)
+            if frame.depth is not None:
+                raw = np.issubdtype(np.asarray(frame.depth).dtype, np.integer)  # a 16-bit PNG as read
+                return lift_depth(features, frame.depth, calib.left,
+                                  depth_scale=calib.depth_scale if raw else None, config=self.depth_config)
+        except InputError as exc:
+            raise InputError(f"frame {frame.index} ({frame.name}): {exc}") from None
+        return None
