@@ -38,7 +38,7 @@ from stablecues.database import Database  # noqa: E402
 from stablecues.features import OrbExtractor  # noqa: E402
 from stablecues.imageio import read_image  # noqa: E402
 from stablecues.types import Features  # noqa: E402
-from stablecues.vocabulary import Vocabulary, default_vocabulary, load_vocabulary  # noqa: E402
+from stablecues.vocabulary import Vocabulary, default_vocabulary, load_vocabulary, save_vocabulary  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
 
@@ -183,8 +183,8 @@ def main() -> None:
         print("building the 10^6-word synthetic vocabulary ...", flush=True)
         voc = synthetic_vocabulary()
         bin_path, txt_path = tmp / "voc1m.scv", tmp / "voc1m.txt"
-        voc.save(bin_path)
-        voc.save(txt_path)
+        save_vocabulary(voc, bin_path)
+        save_vocabulary(voc, txt_path)
         loads = []
         for _ in range(5):
             t = time.perf_counter()

@@ -37,12 +37,12 @@ import cv2
 import numpy as np
 
 from stablecues.datasets import open_dataset
-from stablecues.types import Frame
 from stablecues.detection import LoopDetector, describe_preset, preset
 from stablecues.detection.run import run_dataset
 from stablecues.errors import ModelError
 from stablecues.evaluation import evaluate_detections, evaluate_run, load_run
 from stablecues.imageio import read_image
+from stablecues.types import Frame
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "data"

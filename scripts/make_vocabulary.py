@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from stablecues.features import OrbConfig, OrbExtractor
-from stablecues.imageio import read_image
-from stablecues.vocabulary import DEFAULT_VOCABULARY, train_vocabulary
+from stablecues.features import OrbConfig, make_extractor
+from stablecues.imageio import list_images, read_image
+from stablecues.vocabulary import DEFAULT_VOCABULARY, save_vocabulary, train_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -35,18 +35,21 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    images = sorted((args.data / "camvid" / "train").glob("*.jpg")) + sorted(
-        (args.data / "camvid" / "val").glob("*.jpg")
-    )
+    camvid = args.data / "camvid"
+    if not (camvid / "train").is_dir() or not (camvid / "val").is_dir():
+        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    # natural order == sorted order for CamVid's zero-padded names
+    images = [p for split in ("train", "val")
+              for p in list_images(camvid / split, f"CamVid {split}", suffixes=(".jpg",), allow_empty=True)]
     if not images:
-        raise SystemExit(f"no CamVid train/val images under {args.data / 'camvid'}")
-    extractor = OrbExtractor(OrbConfig())
+        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    extractor = make_extractor(OrbConfig())
     sets = [extractor.extract(read_image(p, "grey")).descriptors for p in tqdm(images, desc="ORB")]
     t0 = time.perf_counter()
     voc = train_vocabulary(sets, k=args.k, levels=args.levels, seed=args.seed)
     took = time.perf_counter() - t0
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    voc.save(args.out)
+    save_vocabulary(voc, args.out)
     info = voc.info()
     meta = {
         "file": args.out.name, "images": len(images), "sources": ["camvid/train", "camvid/val"],

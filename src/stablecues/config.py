@@ -1,21 +1,48 @@
-"""Settings as frozen dataclasses: merging overrides that reject unknown keys, and presets."""
+"""Settings as frozen dataclasses: merging overrides that reject unknown keys, and presets.
+
+A field may hold one of several settings classes chosen by a tag inside its value (the feature
+extractor's settings are chosen by ``name``). Tag such a field with :func:`select_by`; then
+``merge(config, {"features": {"name": "sift", "n_features": 500}})`` switches the field to the
+settings class registered for "sift", its defaults first, then the other overrides.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import enum
+import typing
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from .errors import ConfigError
 
 T = TypeVar("T")
 
+_SELECT = "stablecues.select_by"
+
+
+def select_by(key: str, resolve: Callable[[str], Callable[[], object]]) -> dict[str, object]:
+    """Field metadata for a settings field whose class is chosen by ``key`` in its value.
+
+    Use as ``field(default_factory=OrbConfig, metadata=select_by("name", extractor_config_class))``.
+
+    Args:
+        key: the field of the settings classes that names them ("name").
+        resolve: ``value of key -> settings class`` (raising ConfigError for unknown values);
+            the class is called without arguments for its defaults.
+    """
+    return {_SELECT: (key, resolve)}
+
 
 def merge(config: T, overrides: Mapping[str, Any] | None = None) -> T:
     """Return a copy of a frozen dataclass ``config`` with ``overrides`` applied.
 
-    Nested dataclass fields accept a mapping of their own overrides. Unknown keys raise
-    :class:`ConfigError` naming the key and the known ones, so typos never pass silently.
+    Nested dataclass fields accept a mapping of their own overrides; a nested field that is
+    None takes a mapping as overrides of its settings class's defaults, and a field tagged with
+    :func:`select_by` switches class when the mapping names another one. Lists are turned back
+    into the tuple or frozenset a field holds, and plain values into its enum, so that
+    ``merge(type(c)(), to_dict(c)) == c``. Unknown keys raise :class:`ConfigError` naming the
+    key and the known ones, so typos never pass silently.
     """
     if not overrides:
         return config
@@ -27,15 +54,58 @@ def merge(config: T, overrides: Mapping[str, Any] | None = None) -> T:
         if key not in fields:
             known = ", ".join(sorted(fields))
             raise ConfigError(f"unknown setting {key!r} for {type(config).__name__}; known: {known}")
-        current = getattr(config, key)
-        if dataclasses.is_dataclass(current) and isinstance(value, Mapping):
-            value = merge(current, value)
-        changes[key] = value
+        changes[key] = _merged_value(config, fields[key], value)
     return dataclasses.replace(config, **changes)  # type: ignore[type-var,unused-ignore]
 
 
+def _merged_value(config: object, f: dataclasses.Field, value: Any) -> Any:
+    """The new value of field ``f`` of ``config`` given an override ``value``."""
+    current = getattr(config, f.name)
+    if not isinstance(value, Mapping):
+        return _coerce(current, value)
+    select = f.metadata.get(_SELECT)
+    if select is not None:
+        key, resolve = select
+        if key in value and (current is None or getattr(current, key, None) != value[key]):
+            return merge(resolve(value[key])(), value)
+    if dataclasses.is_dataclass(current) and not isinstance(current, type):
+        return merge(current, value)
+    if current is None:
+        cls = _optional_dataclass(type(config), f.name)
+        if cls is not None:
+            return merge(cls(), value)
+    return value
+
+
+def _coerce(current: Any, value: Any) -> Any:
+    """``value`` in the form of the field's ``current`` value: a JSON list back into a tuple or
+    frozenset, a plain value into the enum."""
+    if isinstance(current, tuple | frozenset | set) and isinstance(value, list | tuple | set | frozenset):
+        return type(current)(value)
+    if isinstance(current, enum.Enum) and not isinstance(value, enum.Enum):
+        try:
+            return type(current)(value)
+        except ValueError:
+            known = ", ".join(repr(m.value) for m in type(current))
+            raise ConfigError(f"{value!r}: expected one of {known}") from None
+    return value
+
+
+def _optional_dataclass(cls: type, name: str) -> type | None:
+    """The settings class of an ``X | None`` field ``name`` of dataclass ``cls``, if exactly one."""
+    try:
+        hint = typing.get_type_hints(cls)[name]
+    except (NameError, TypeError):  # unresolvable annotations: leave the value as it is
+        return None
+    options = [a for a in typing.get_args(hint) if dataclasses.is_dataclass(a) and isinstance(a, type)]
+    return options[0] if len(options) == 1 else None
+
+
 def to_dict(config: object) -> dict[str, Any]:
-    """Plain-dict view of a (possibly nested) settings dataclass, for JSON files."""
+    """Plain-dict view of a (possibly nested) settings dataclass, for JSON files.
+
+    ``merge(type(config)(), to_dict(config))`` gives ``config`` back.
+    """
     if not dataclasses.is_dataclass(config) or isinstance(config, type):
         raise TypeError("to_dict() expects a dataclass instance")
     out: dict[str, Any] = {}
@@ -43,7 +113,9 @@ def to_dict(config: object) -> dict[str, Any]:
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             value = to_dict(value)
-        elif isinstance(value, tuple | frozenset | set):
+        elif isinstance(value, frozenset | set):
+            value = sorted(value, key=str)  # a set's own order changes from run to run
+        elif isinstance(value, tuple):
             value = list(value)
         elif hasattr(value, "value") and hasattr(type(value), "__members__"):
             value = value.value

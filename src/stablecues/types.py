@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, cast
 
 import numpy as np
 
@@ -16,19 +16,89 @@ from .errors import InputError, check_array
 if TYPE_CHECKING:
     from .geometry.camera import Calibration
 
-DESCRIPTOR_BYTES = 32  # ORB / BRIEF-256
+ORB_DESCRIPTOR_BYTES = 32
+"""Width in bytes of an ORB (BRIEF-256) descriptor: 256 bits."""
+
+DESCRIPTOR_BYTES = ORB_DESCRIPTOR_BYTES
+"""Width of the binary words the vocabulary holds today (ORB's); kept for the vocabulary's
+descriptor operations. New code: :data:`ORB_DESCRIPTOR_BYTES` or a :class:`DescriptorKind`."""
+
+_KIND_DTYPES: dict[str, np.dtype] = {"binary": np.dtype(np.uint8), "float": np.dtype(np.float32)}
+
+
+@dataclass(frozen=True)
+class DescriptorKind:
+    """What a local descriptor is, so that each stage can refuse what it cannot take.
+
+    Attributes:
+        kind: ``"binary"`` (bits packed in uint8 bytes, compared by Hamming distance) or
+            ``"float"`` (float32 vectors, compared by Euclidean distance).
+        size: bytes per descriptor for binary kinds (32 for ORB), dimensions for float kinds
+            (128 for SIFT).
+    """
+
+    kind: Literal["binary", "float"]
+    size: int
+
+    def __post_init__(self) -> None:
+        if self.kind not in _KIND_DTYPES:
+            raise InputError(f"descriptor kind: expected 'binary' or 'float', got {self.kind!r}")
+        if isinstance(self.size, bool) or not isinstance(self.size, int | np.integer) or self.size < 1:
+            raise InputError(f"descriptor size: expected a positive integer, got {self.size!r}")
+
+    @property
+    def dtype(self) -> np.dtype:
+        """uint8 for binary descriptors, float32 for float ones."""
+        return _KIND_DTYPES[self.kind]
+
+    def __str__(self) -> str:
+        if self.kind == "binary":
+            return f"{self.size}-byte binary"
+        return f"{self.size}-dim float32"
+
+    @staticmethod
+    def of(descriptors: object, name: str = "descriptors") -> DescriptorKind:
+        """The kind of an (N, D) descriptor array: uint8 is binary, float32 is float.
+
+        Raises:
+            InputError: not a 2-D uint8 or float32 array with D >= 1.
+        """
+        check_array(name, descriptors, ndim=2)
+        arr = cast(np.ndarray, descriptors)
+        if arr.dtype == np.uint8:
+            kind: Literal["binary", "float"] = "binary"
+        elif arr.dtype == np.float32:
+            kind = "float"
+        else:
+            raise InputError(f"{name}: expected dtype uint8 (binary) or float32 (float), got {arr.dtype}")
+        if arr.shape[1] < 1:
+            raise InputError(f"{name}: expected shape NxD with D >= 1, got {arr.shape}")
+        return DescriptorKind(kind, int(arr.shape[1]))
+
+    def check(self, descriptors: object, name: str = "descriptors") -> None:
+        """Raise :class:`InputError` unless ``descriptors`` is an (N, size) array of this kind."""
+        check_array(name, descriptors, dtype=self.dtype, shape=(None, self.size))
+
+
+ORB_DESCRIPTOR = DescriptorKind("binary", ORB_DESCRIPTOR_BYTES)
+"""The descriptors of ORB (and BRIEF-256): 32 bytes, 256 bits."""
 
 
 @dataclass(frozen=True)
 class Features:
-    """Local binary features of one image.
+    """Local features of one image: keypoints and one descriptor per keypoint.
+
+    Descriptors are binary, (N, D) uint8 with D bytes per descriptor (32 for ORB), or float,
+    (N, D) float32 (128 for SIFT); :attr:`descriptor_kind` says which.
 
     Attributes:
         keypoints: (N, 2) float32 pixel coordinates (x, y) in the full-resolution image.
-        descriptors: (N, 32) uint8 binary descriptors (256 bits).
-        octaves: (N,) int16 pyramid level each keypoint was found at.
+        descriptors: (N, D) uint8 binary or (N, D) float32 descriptors.
+        octaves: (N,) int16 pyramid level each keypoint was found at (level ``o`` is the image
+            scaled down by the extractor's ``level_scale ** o``; SIFT's upsampled first octave
+            is -1).
         angles: (N,) float32 orientation in degrees, as OpenCV gives it.
-        responses: (N,) float32 corner response (higher is stronger).
+        responses: (N,) float32 detector response (higher is stronger).
         sizes: (N,) float32 diameter of the keypoint's patch in pixels.
         image_size: (width, height) of the image the features come from.
     """
@@ -44,7 +114,11 @@ class Features:
     def __post_init__(self) -> None:
         check_array("keypoints", self.keypoints, dtype=np.float32, shape=(None, 2))
         n = self.keypoints.shape[0]
-        check_array("descriptors", self.descriptors, dtype=np.uint8, shape=(n, DESCRIPTOR_BYTES))
+        DescriptorKind.of(self.descriptors)
+        if self.descriptors.shape[0] != n:
+            raise InputError(
+                f"descriptors: expected one per keypoint ({n}), got shape {self.descriptors.shape}"
+            )
         for name in ("octaves", "angles", "responses", "sizes"):
             arr = getattr(self, name)
             check_array(name, arr, shape=(n,))
@@ -52,12 +126,17 @@ class Features:
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
 
+    @property
+    def descriptor_kind(self) -> DescriptorKind:
+        """Binary with the byte width, or float with the dimension, of the descriptors."""
+        return DescriptorKind.of(self.descriptors)
+
     @staticmethod
-    def empty(image_size: tuple[int, int]) -> Features:
-        """Features with zero keypoints, correctly shaped."""
+    def empty(image_size: tuple[int, int], kind: DescriptorKind = ORB_DESCRIPTOR) -> Features:
+        """Features with zero keypoints, correctly shaped: descriptors (0, D) of ``kind``."""
         return Features(
             keypoints=np.zeros((0, 2), np.float32),
-            descriptors=np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
+            descriptors=np.zeros((0, kind.size), kind.dtype),
             octaves=np.zeros(0, np.int16),
             angles=np.zeros(0, np.float32),
             responses=np.zeros(0, np.float32),
@@ -66,7 +145,8 @@ class Features:
         )
 
     def subset(self, index: np.ndarray) -> Features:
-        """Features selected by a boolean mask or an integer index array."""
+        """Features selected by a boolean mask or an integer index array (descriptors keep
+        their kind, also when nothing is selected)."""
         index = np.asarray(index)
         if index.dtype == bool and index.shape != (len(self),):
             raise InputError(f"mask: expected shape ({len(self)},), got {index.shape}")

@@ -42,3 +42,25 @@ def test_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert main(["vocab", "info", str(tmp_path / "bad.txt")]) == 1
     assert "bad.txt" in capsys.readouterr().err
     assert main(["vocab", "train", str(tmp_path / "nothing"), "--out", str(tmp_path / "x.scv")]) == 1
+
+
+def test_features_by_name_and_the_old_number_form_agree(tmp_path: Path) -> None:
+    write_images(tmp_path / "imgs")
+    old, new = tmp_path / "old.scv", tmp_path / "new.scv"
+    common = ["vocab", "train", str(tmp_path / "imgs"), "--k", "4", "--levels", "2"]
+    assert main([*common, "--out", str(old), "--features", "150"]) == 0
+    assert main([*common, "--out", str(new), "--features", "orb", "--n-features", "150"]) == 0
+    assert old.read_bytes() == new.read_bytes()
+
+
+def test_extractors_the_vocabulary_cannot_take_are_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    write_images(tmp_path / "imgs", n=1)
+    out = tmp_path / "v.scv"
+    assert main(["vocab", "train", str(tmp_path / "imgs"), "--out", str(out), "--features", "sift"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "128-dim float32" in err and "32-byte binary" in err
+    assert not out.exists()
+    assert main(["vocab", "train", str(tmp_path / "imgs"), "--out", str(out), "--features", "surf"]) == 1
+    assert "unknown feature extractor 'surf'; known: orb, sift" in capsys.readouterr().err

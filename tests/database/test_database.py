@@ -17,7 +17,7 @@ import pytest
 from stablecues.database import Database, InvertedIndex
 from stablecues.errors import DatabaseError, InputError
 from stablecues.types import Features
-from stablecues.vocabulary import Scoring, Vocabulary, score, train_vocabulary
+from stablecues.vocabulary import Scoring, Vocabulary, save_vocabulary, score, train_vocabulary
 
 N_IMAGES = 30
 
@@ -218,7 +218,7 @@ WRITER = textwrap.dedent(
 
 def test_killed_writer_loses_at_most_the_entry_in_progress(voc: Vocabulary, tmp_path: Path) -> None:
     voc_path, db_path = tmp_path / "v.scv", tmp_path / "db.sqlite"
-    voc.save(voc_path)
+    save_vocabulary(voc, voc_path)
     script = WRITER.format(tests=str(Path(__file__).parent), voc=str(voc_path), db=str(db_path))
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None

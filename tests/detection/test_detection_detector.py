@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from stablecues.cli.main import main
-from stablecues.types import Frame
 from stablecues.detection import LoopDetector, Status, compute_islands, preset
 from stablecues.errors import ConfigError
+from stablecues.types import Frame
 
 FRAMES = 60
 REVISIT_FROM = 44  # frames 44.. look at the places of frames 4..

@@ -41,7 +41,8 @@ def test_monocular_frame_has_features_bow_and_no_3d(preparer: FramePreparer) -> 
     assert len(prep.fvec) == len(prep.features) and len(prep.bow) > 0
     assert prep.points is None and prep.calibration is None and not prep.mask_fallback
     assert set(prep.timings) == {"extract", "transform", "lift"}
-    np.testing.assert_array_equal(prep.bow.words, default_vocabulary().transform(prep.features.descriptors)[0].words)
+    bow, _ = default_vocabulary().transform(prep.features.descriptors)
+    np.testing.assert_array_equal(prep.bow.words, bow.words)
     view = prep.view
     assert view.features is prep.features and view.fvec is prep.fvec and view.points is None
 

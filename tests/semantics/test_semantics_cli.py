@@ -42,13 +42,18 @@ def test_eval_prints_and_writes_json(
     assert abs(sum(row["fraction"] for row in result["calibration"]) - 1.0) < 1e-9
 
 
-def test_image_writes_a_picture(tiny_onnx: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "features", [["--features", "200"], ["--features", "orb", "--n-features", "200"], ["--features", "sift"]]
+)
+def test_image_writes_a_picture(
+    tiny_onnx: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], features: list[str]
+) -> None:
     frame = sorted((shared_path("camvid") / "test").iterdir())[0]
     out = tmp_path / "seg.png"
-    code = main(
-        ["segment", "image", str(frame), "--out", str(out), "--weights", str(tiny_onnx), "--features", "200"]
-    )
+    code = main(["segment", "image", str(frame), "--out", str(out), "--weights", str(tiny_onnx), *features])
     assert code == 0 and out.stat().st_size > 10_000
+    kept, total = capsys.readouterr().out.split(": ")[1].split(" ")[0].split("/")
+    assert 0 <= int(kept) <= int(total) <= (200 if "200" in features else 1000) and int(total) > 50
 
 
 def test_missing_weights_is_one_clear_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

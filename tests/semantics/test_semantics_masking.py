@@ -8,6 +8,7 @@ import pytest
 from stablecues.errors import ConfigError
 from stablecues.semantics import MaskingConfig, SegmentationResult, pixel_mask, select_features
 from stablecues.semantics.classes import CLASS_NAMES
+from stablecues.semantics.masking import KEYPOINT_RULES, MASKING_PRESETS, MODES, PIXEL_RULES
 from stablecues.types import Features
 
 SKY, BUILDING, ROAD, CAR, TREE = (CLASS_NAMES.index(n) for n in ("Sky", "Building", "Road", "Car", "Tree"))
@@ -179,3 +180,42 @@ def test_fallback_by_fraction(labels: np.ndarray) -> None:
     assert not report.fallback and report.kept == 3
     with pytest.raises(ConfigError, match="min_kept_fraction"):
         MaskingConfig(min_kept_fraction=2.0)
+
+
+def test_modes_are_the_rule_tables_keys(labels: np.ndarray) -> None:
+    assert MODES == tuple(PIXEL_RULES) == ("hard", "dilate", "patch", "dynamic", "none")
+    assert set(KEYPOINT_RULES) <= set(MODES)
+    assert {c.mode for c in MASKING_PRESETS.values()} == {"hard", "dilate", "patch", "dynamic", "none"}
+    seg = make_seg(labels)
+    static = np.isin(labels, [BUILDING, TREE])  # of the fixture's classes; sky, road and car are not
+    everywhere = np.ones_like(static)
+    expected = {"hard": static, "patch": static, "dilate": static, "dynamic": labels != CAR,
+                "none": everywhere}
+    for mode in MODES:
+        got = pixel_mask(seg, MaskingConfig(mode=mode, dilation=0))
+        assert got.dtype == bool and got.shape == labels.shape
+        np.testing.assert_array_equal(got, expected[mode], err_msg=mode)
+
+
+def test_none_mode_keeps_everything(labels: np.ndarray) -> None:
+    feats = make_features(POINTS)
+    kept, report = select_features(feats, make_seg(labels), MaskingConfig(mode="none"))
+    assert report.passed.all() and kept.keypoints.shape == feats.keypoints.shape and not report.fallback
+
+
+def test_float_descriptors_are_masked_the_same_way(labels: np.ndarray) -> None:
+    binary = make_features(POINTS)
+    floats = Features(
+        keypoints=binary.keypoints,
+        descriptors=np.random.default_rng(0).random((len(POINTS), 128)).astype(np.float32),
+        octaves=binary.octaves,
+        angles=binary.angles,
+        responses=binary.responses,
+        sizes=binary.sizes,
+        image_size=binary.image_size,
+    )
+    cfg = MaskingConfig(mode="hard", min_kept=0, min_kept_fraction=0.0)
+    kept, report = select_features(floats, make_seg(labels), cfg)
+    assert report.passed.tolist() == select_features(binary, make_seg(labels), cfg)[1].passed.tolist()
+    np.testing.assert_array_equal(kept.descriptors, floats.descriptors[[1, 2, 5]])
+    assert kept.descriptors.dtype == np.float32

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from stablecues.errors import VocabularyError
-from stablecues.vocabulary import Vocabulary, default_vocabulary, load_vocabulary, train_vocabulary
+from stablecues.vocabulary import (
+    Vocabulary,
+    default_vocabulary,
+    load_vocabulary,
+    save_vocabulary,
+    train_vocabulary,
+)
 
 
 @pytest.fixture(scope="module")
@@ -33,21 +39,21 @@ def same(a: Vocabulary, b: Vocabulary) -> None:
 @pytest.mark.parametrize("name", ["v.scv", "v.txt"])
 def test_round_trip(voc: Vocabulary, tmp_path: Path, name: str) -> None:
     path = tmp_path / name
-    voc.save(path)
+    save_vocabulary(voc, path)
     back = load_vocabulary(path)
     same(voc, back)
     assert back.fingerprint == voc.fingerprint
 
 
 def test_text_to_binary_to_text(voc: Vocabulary, tmp_path: Path) -> None:
-    voc.save(tmp_path / "a.txt")
-    load_vocabulary(tmp_path / "a.txt").save(tmp_path / "b.scv")
-    load_vocabulary(tmp_path / "b.scv").save(tmp_path / "c.txt")
+    save_vocabulary(voc, tmp_path / "a.txt")
+    save_vocabulary(load_vocabulary(tmp_path / "a.txt"), tmp_path / "b.scv")
+    save_vocabulary(load_vocabulary(tmp_path / "b.scv"), tmp_path / "c.txt")
     assert (tmp_path / "a.txt").read_text() == (tmp_path / "c.txt").read_text()
 
 
 def test_text_format_is_orbslam_layout(voc: Vocabulary, tmp_path: Path) -> None:
-    voc.save(tmp_path / "v.txt")
+    save_vocabulary(voc, tmp_path / "v.txt")
     lines = (tmp_path / "v.txt").read_text().splitlines()
     assert lines[0].split() == ["5", "3", "0", "0"]  # k L scoring(L1) weighting(TF-IDF)
     assert len(lines) == voc.n_nodes  # header + one line per non-root node
@@ -72,7 +78,7 @@ def test_missing_file(tmp_path: Path) -> None:
 
 
 def test_truncated_binary(voc: Vocabulary, tmp_path: Path) -> None:
-    voc.save(tmp_path / "v.scv")
+    save_vocabulary(voc, tmp_path / "v.scv")
     data = (tmp_path / "v.scv").read_bytes()
     for cut in (10, 40, len(data) // 2, len(data) - 1):
         (tmp_path / "t.scv").write_bytes(data[:cut])
@@ -81,7 +87,7 @@ def test_truncated_binary(voc: Vocabulary, tmp_path: Path) -> None:
 
 
 def test_corrupt_binary(voc: Vocabulary, tmp_path: Path) -> None:
-    voc.save(tmp_path / "v.scv")
+    save_vocabulary(voc, tmp_path / "v.scv")
     data = bytearray((tmp_path / "v.scv").read_bytes())
     data[-100] ^= 0xFF
     (tmp_path / "c.scv").write_bytes(bytes(data))
@@ -90,7 +96,7 @@ def test_corrupt_binary(voc: Vocabulary, tmp_path: Path) -> None:
 
 
 def test_truncated_and_garbage_text(voc: Vocabulary, tmp_path: Path) -> None:
-    voc.save(tmp_path / "v.txt")
+    save_vocabulary(voc, tmp_path / "v.txt")
     text = (tmp_path / "v.txt").read_text()
     (tmp_path / "t.txt").write_text(text[: len(text) // 2])
     with pytest.raises(VocabularyError, match="t.txt"):

@@ -9,8 +9,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .vocab import add_extractor_options
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from ..semantics.masking import MODES
+
     p: argparse.ArgumentParser = subparsers.add_parser(
         "segment", help="semantic segmentation: train, eval, export, image"
     )
@@ -49,10 +53,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     i.add_argument("--out", required=True, help="PNG to write")
     i.add_argument("--weights", default=None, help="ONNX file (default: the shipped weights)")
     i.add_argument("-T", "--samples", type=int, default=None)
-    i.add_argument("--mode", default="dynamic", choices=["hard", "dilate", "patch", "dynamic", "none"],
+    i.add_argument("--mode", default="dynamic", choices=list(MODES),
                    help="masking mode (default: dynamic, the library's default)")
     i.add_argument("--max-uncertainty", type=float, default=None)
-    i.add_argument("--features", type=int, default=1000, help="ORB features to extract")
+    add_extractor_options(i, "to extract")
     return p
 
 
@@ -135,11 +139,12 @@ def _image(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
 
     from ..config import merge
-    from ..features import OrbConfig, OrbExtractor
+    from ..features import make_extractor
     from ..imageio import read_image
     from ..semantics.inference import SegmentationModel
     from ..semantics.masking import MaskingConfig, select_features
     from ..semantics.viz import plot_keypoints, plot_overlay, plot_uncertainty
+    from .vocab import extractor_from_args
 
     overrides: dict[str, Any] = {"mode": args.mode}
     if args.max_uncertainty is not None:
@@ -149,7 +154,7 @@ def _image(args: argparse.Namespace) -> int:
     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     model = SegmentationModel.load(args.weights)
     seg = model.predict(bgr, args.samples)
-    features = OrbExtractor(merge(OrbConfig(), {"n_features": args.features})).extract(bgr)
+    features = make_extractor(extractor_from_args(args)).extract(bgr)
     _, report = select_features(features, seg, config)
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     axes[0, 0].imshow(rgb)

@@ -53,9 +53,9 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from ..config import to_dict
+    from ..detection.pair import ImagePairVerifier
     from ..errors import InputError
     from ..geometry import load_calibration, load_euroc_stereo, rotation_angle_deg
-    from ..detection.pair import ImagePairVerifier
     from ..verification import preset
 
     if (args.right_a is None) != (args.right_b is None):

@@ -4,8 +4,38 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
+if TYPE_CHECKING:
+    from ..features import ExtractorConfig
+
+
+def add_extractor_options(parser: argparse.ArgumentParser, what: str = "per image") -> None:
+    """``--features NAME`` and ``--n-features N``, read back by :func:`extractor_from_args`."""
+    from ..features import DEFAULT_EXTRACTOR, extractor_names
+
+    parser.add_argument("--features", default=DEFAULT_EXTRACTOR, metavar="NAME",
+                        help=f"feature extractor: {' | '.join(extractor_names())} (default "
+                             f"{DEFAULT_EXTRACTOR}); a number N means --n-features N")
+    parser.add_argument("--n-features", type=int, default=None, metavar="N",
+                        help=f"features {what} (default: the extractor's, 1000)")
+
+
+def extractor_from_args(args: argparse.Namespace) -> ExtractorConfig:
+    """The extractor settings that ``--features`` and ``--n-features`` ask for.
+
+    ``--features 200`` (a number, the options' old form) still means 200 ORB features.
+    """
+    from ..errors import ConfigError
+    from ..features import DEFAULT_EXTRACTOR, extractor_config
+
+    name, n = str(args.features), args.n_features
+    if name.isdigit():
+        if n is not None:
+            raise ConfigError(f"--features {name} is a number of features; with --n-features, "
+                              "give the extractor's name to --features")
+        name, n = DEFAULT_EXTRACTOR, int(name)
+    return extractor_config(name) if n is None else extractor_config(name, n_features=n)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -19,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     t.add_argument("--out", type=Path, required=True, help="output file (.txt: DBoW2/ORB-SLAM text)")
     t.add_argument("--weighting", default="tf-idf", help="tf-idf | tf | idf | binary")
     t.add_argument("--scoring", default="l1", help="l1 | l2 | chi-square | kl | bhattacharyya | dot")
-    t.add_argument("--features", type=int, default=1000, help="ORB features per image")
+    add_extractor_options(t)
     t.add_argument("--seed", type=int, default=0)
 
     c = sub.add_parser("convert", help="convert between the binary (.scv) and text (.txt) formats")
@@ -33,11 +63,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _image_files(paths: list[Path]) -> list[Path]:
     from ..errors import InputError
+    from ..imageio import list_images
 
     files: list[Path] = []
     for p in paths:
         if p.is_dir():
-            files += sorted(f for f in p.rglob("*") if f.suffix.lower() in IMAGE_SUFFIXES)
+            # plain sorted order (not list_images' natural order): the order of the descriptors
+            # decides the k-means seeds, and vocabularies trained before must come out the same
+            files += sorted(list_images(p, "training images", recursive=True, allow_empty=True))
         elif p.is_file():
             files.append(p)
         else:
@@ -48,7 +81,7 @@ def _image_files(paths: list[Path]) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..vocabulary import load_vocabulary
+    from ..vocabulary import load_vocabulary, save_vocabulary
 
     if args.vocab_command == "info":
         info = load_vocabulary(args.file).info()
@@ -63,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.vocab_command == "convert":
         voc = load_vocabulary(args.input)
-        voc.save(args.output)
+        save_vocabulary(voc, args.output)
         print(f"wrote {args.output} ({voc.n_words} words)")
         return 0
     return _train(args)
@@ -72,17 +105,26 @@ def run(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..features import OrbConfig, OrbExtractor
+    from ..errors import ConfigError
+    from ..features import make_extractor
     from ..imageio import read_image
-    from ..vocabulary import parse_scoring, parse_weighting, train_vocabulary
+    from ..types import ORB_DESCRIPTOR
+    from ..vocabulary import parse_scoring, parse_weighting, save_vocabulary, train_vocabulary
 
     weighting, scoring = parse_weighting(args.weighting), parse_scoring(args.scoring)
+    config = extractor_from_args(args)
+    extractor = make_extractor(config)
+    if extractor.descriptor_kind != ORB_DESCRIPTOR:
+        raise ConfigError(
+            f"vocab train --features {config.name}: its descriptors are {extractor.descriptor_kind}, "
+            f"but vocabularies are made of {ORB_DESCRIPTOR} words only so far; use --features orb"
+        )
     files = _image_files(args.images)
-    extractor = OrbExtractor(OrbConfig(n_features=args.features))
-    sets = [extractor.extract(read_image(f, "grey")).descriptors for f in tqdm(files, desc="ORB")]
+    label = config.name.upper()
+    sets = [extractor.extract(read_image(f, "grey")).descriptors for f in tqdm(files, desc=label)]
     voc = train_vocabulary(sets, k=args.k, levels=args.levels, weighting=weighting, scoring=scoring,
                            seed=args.seed)
-    voc.save(args.out)
+    save_vocabulary(voc, args.out)
     info = voc.info()
     print(f"wrote {args.out}: {len(files)} images, {sum(s.shape[0] for s in sets)} descriptors, "
           f"k={info.k} L={info.levels}, {info.n_words} words")

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from ..config import merge
+from ..config import merge, select_by
 from ..errors import ConfigError
-from ..features import OrbConfig
+from ..features import ExtractorConfig, OrbConfig, extractor_config_class
 from ..semantics.masking import MASKING_PRESETS, MaskingConfig
 from ..verification.config import VerificationConfig
 from ..verification.config import preset as verification_preset
@@ -53,7 +53,10 @@ class DetectorConfig:
     """Everything the loop detector does, as one frozen value.
 
     Attributes:
-        features: ORB settings.
+        features: the feature extractor's settings; ``name`` picks the extractor ("orb", the
+            default, "sift", or any registered with
+            :func:`~stablecues.features.register_extractor`), e.g. the override
+            ``{"features": {"name": "sift", "n_features": 500}}``.
         masking: semantic feature selection, or None for none.
         semantic_source: "network" (the shipped segmentation network) or "labels" (the frame's
             own label image, e.g. ground truth of a synthetic sequence).
@@ -69,7 +72,9 @@ class DetectorConfig:
             DLoopDetector). Without verification it is always the BoW score.
     """
 
-    features: OrbConfig = field(default_factory=OrbConfig)
+    features: ExtractorConfig = field(
+        default_factory=OrbConfig, metadata=select_by("name", extractor_config_class)
+    )
     masking: MaskingConfig | None = None
     semantic_source: Literal["network", "labels"] = "network"
     segmentation_samples: int | None = None

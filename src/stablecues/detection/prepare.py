@@ -27,7 +27,7 @@ import numpy as np
 
 from ..config import merge
 from ..errors import ConfigError, InputError
-from ..features import OrbExtractor
+from ..features import make_extractor
 from ..geometry.camera import Calibration
 from ..geometry.depth import DepthConfig, lift_depth, lift_map_points
 from ..geometry.points import NoiseModel, Points3D
@@ -121,7 +121,12 @@ class FramePreparer:
         self.config = config
         self.vocabulary = vocabulary
         self.calibration = calibration
-        self.extractor = OrbExtractor(config.features)
+        self.extractor = make_extractor(config.features)
+        if self.extractor.descriptor_kind != vocabulary.descriptor_kind:
+            raise ConfigError(
+                f"features {config.features.name!r} give {self.extractor.descriptor_kind} descriptors but "
+                f"the vocabulary holds {vocabulary.descriptor_kind} words: train a vocabulary for them"
+            )
         self.stereo_config = stereo or StereoConfig()
         self.depth_config = depth or DepthConfig()
         self._segmenter = segmenter

@@ -1,6 +1,29 @@
-"""Binary local features behind one :class:`Extractor` protocol."""
+"""Local features behind one :class:`Extractor` protocol, chosen by name (ORB, SIFT, ...)."""
 
-from .base import Extractor
+from .base import Extractor, ExtractorConfig
 from .orb import OrbConfig, OrbExtractor, distribute_quadtree
+from .registry import (
+    DEFAULT_EXTRACTOR,
+    extractor_config,
+    extractor_config_class,
+    extractor_names,
+    make_extractor,
+    register_extractor,
+)
+from .sift import SiftConfig, SiftExtractor
 
-__all__ = ["Extractor", "OrbConfig", "OrbExtractor", "distribute_quadtree"]
+__all__ = [
+    "DEFAULT_EXTRACTOR",
+    "Extractor",
+    "ExtractorConfig",
+    "OrbConfig",
+    "OrbExtractor",
+    "SiftConfig",
+    "SiftExtractor",
+    "distribute_quadtree",
+    "extractor_config",
+    "extractor_config_class",
+    "extractor_names",
+    "make_extractor",
+    "register_extractor",
+]

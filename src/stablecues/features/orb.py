@@ -24,16 +24,18 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError
 from ..imageio import to_grey
-from ..types import Features
+from ..types import ORB_DESCRIPTOR, DescriptorKind, Features
+from .base import ExtractorConfig, check_mask
 
 
 @dataclass(frozen=True)
-class OrbConfig:
+class OrbConfig(ExtractorConfig):
     """ORB settings.
 
     Attributes:
+        name: "orb", the registry name (see :mod:`stablecues.features.registry`).
         n_features: how many features to keep at most.
         scale_factor: pyramid scale between levels (> 1).
         n_levels: pyramid levels.
@@ -46,6 +48,7 @@ class OrbConfig:
         patch_size: ORB patch size.
     """
 
+    name: str = "orb"
     n_features: int = 1000
     scale_factor: float = 1.2
     n_levels: int = 8
@@ -57,6 +60,7 @@ class OrbConfig:
     patch_size: int = 31
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.n_features < 0:
             raise ConfigError(f"n_features must be >= 0, got {self.n_features}")
         if self.scale_factor <= 1.0:
@@ -138,10 +142,20 @@ def distribute_quadtree(
 
 
 class OrbExtractor:
-    """ORB keypoints and descriptors (see the module docstring for the distribution)."""
+    """ORB keypoints and 32-byte binary descriptors (see the module docstring for the spread)."""
 
     def __init__(self, config: OrbConfig | None = None) -> None:
         self.config = config or OrbConfig()
+
+    @property
+    def descriptor_kind(self) -> DescriptorKind:
+        """32-byte binary (256-bit BRIEF)."""
+        return ORB_DESCRIPTOR
+
+    @property
+    def level_scale(self) -> float:
+        """The pyramid's ``scale_factor``."""
+        return self.config.scale_factor
 
     def _orb(self, n: int, fast: int) -> cv2.ORB:
         c = self.config
@@ -170,11 +184,7 @@ class OrbExtractor:
         grey = to_grey(image)
         h, w = grey.shape
         size = (int(w), int(h))
-        if mask is not None:
-            if not isinstance(mask, np.ndarray) or mask.shape != grey.shape:
-                got = getattr(mask, "shape", type(mask).__name__)
-                raise InputError(f"mask: expected shape {grey.shape}, got {got}")
-            mask = (mask != 0).astype(np.uint8)
+        mask = check_mask(mask, grey.shape)
         c = self.config
         if c.n_features == 0 or min(h, w) <= 2 * c.edge_threshold:
             return Features.empty(size)

@@ -14,13 +14,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import DatasetError, InputError
+from ..errors import DatasetError
+from ..imageio import list_images, read_image
 from .classes import NUM_CLASSES, VOID_ID
 
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 @dataclass(frozen=True)
@@ -42,24 +42,22 @@ class CamVidSplit:
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
-    """Read an image file as (H, W, 3) uint8 RGB; a missing or corrupt file raises InputError."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: image file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if image is None:
-        raise InputError(f"{path}: expected a readable image (PNG/JPEG), could not decode it")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    """Read an image file as (H, W, 3) uint8 RGB.
+
+    Raises:
+        ImageError: a missing or corrupt file (an InputError and a DatasetError).
+    """
+    return read_image(path, "rgb")
 
 
 def read_label(path: str | Path) -> np.ndarray:
-    """Read a CamVid label PNG as (H, W) uint8 ids; values above 11 raise DatasetError."""
-    path = Path(path)
-    data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-    label = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if label is None:
-        raise DatasetError(f"{path}: expected a single-channel label PNG, file missing or unreadable")
+    """Read a CamVid label PNG as (H, W) uint8 ids (the first channel of a colour file).
+
+    Raises:
+        ImageError: a missing or unreadable file (a DatasetError).
+        DatasetError: not uint8, or values above 11.
+    """
+    label = read_image(path, "unchanged")
     if label.ndim == 3:
         label = label[..., 0]
     if label.dtype != np.uint8 or int(label.max(initial=0)) > VOID_ID:
@@ -76,7 +74,8 @@ def list_split(root: str | Path, split: str) -> list[tuple[Path, Path]]:
     if not image_dir.is_dir() or not label_dir.is_dir():
         raise DatasetError(f"{root}: expected folders {split}/ and {split}annot/ (CamVid SegNet layout)")
     pairs = []
-    for image in sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES):
+    # natural order; CamVid's names are zero-padded, so it is also their sorted order
+    for image in list_images(image_dir, f"CamVid {split}", allow_empty=True):
         label = label_dir / f"{image.stem}.png"
         if not label.is_file():
             raise DatasetError(f"{image}: no label {label.name} in {label_dir}")

@@ -24,6 +24,7 @@ report says ``fallback=True``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -34,7 +35,87 @@ from ..types import Features
 from .classes import DYNAMIC_CLASSES, STATIC_CLASSES, class_lookup
 from .inference import SegmentationResult
 
-MODES = ("hard", "dilate", "patch", "dynamic", "none")
+PixelRule = Callable[[SegmentationResult, "MaskingConfig"], np.ndarray]
+"""``(segmentation, settings) -> (H, W) bool``: the pixels where a keypoint is kept."""
+
+KeypointRule = Callable[
+    [Features, SegmentationResult, "MaskingConfig", np.ndarray, np.ndarray, float], np.ndarray
+]
+"""``(features, segmentation, settings, x, y, x scale) -> (N,) bool``: the keypoints kept, with
+``x``, ``y`` the (N,) int64 pixel of each keypoint in the segmentation."""
+
+
+def _trusted(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
+    return seg.uncertainty <= config.max_uncertainty
+
+
+def _static(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
+    """hard: a static class, confidently."""
+    return class_lookup(config.static_classes)[seg.labels] & _trusted(seg, config)
+
+
+def _dilated_static(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
+    """dilate: the hard map dilated by ``dilation`` pixels."""
+    static = _static(seg, config)
+    if config.dilation > 0:
+        k = 2 * config.dilation + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        static = cv2.dilate(static.astype(np.uint8), kernel).astype(bool)
+    return static
+
+
+def _not_dynamic(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
+    """dynamic: everywhere but confidently dynamic classes."""
+    dynamic = class_lookup(config.dynamic_classes)[seg.labels]
+    return ~(dynamic & _trusted(seg, config))
+
+
+def _everywhere(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
+    """none: every pixel."""
+    return np.ones(seg.labels.shape, bool)
+
+
+def _at_pixel(
+    features: Features, seg: SegmentationResult, config: MaskingConfig, x: np.ndarray, y: np.ndarray,
+    sx: float,
+) -> np.ndarray:
+    """The mode's pixel map looked up at each keypoint."""
+    return pixel_mask(seg, config)[y, x]
+
+
+def _static_patch(
+    features: Features, seg: SegmentationResult, config: MaskingConfig, x: np.ndarray, y: np.ndarray,
+    sx: float,
+) -> np.ndarray:
+    """patch: static fraction and mean uncertainty over each keypoint's square patch."""
+    h, w = seg.labels.shape
+    static = class_lookup(config.static_classes)[seg.labels].astype(np.float64)
+    if config.patch_radius is None:
+        r = np.maximum(np.round(features.sizes.astype(np.float64) * sx / 2.0), 1).astype(np.int64)
+    else:
+        r = np.full(len(features), config.patch_radius, np.int64)
+    frac = _box_mean(cv2.integral(static), x, y, r, w, h)
+    unc = _box_mean(cv2.integral(seg.uncertainty.astype(np.float64)), x, y, r, w, h)
+    return (frac >= config.patch_fraction) & (unc <= config.max_uncertainty)
+
+
+#: mode -> its pixel map (the patch mode depends on each keypoint's size and has no pixel map;
+#: it gets the hard mode's)
+PIXEL_RULES: dict[str, PixelRule] = {
+    "hard": _static,
+    "dilate": _dilated_static,
+    "patch": _static,
+    "dynamic": _not_dynamic,
+    "none": _everywhere,
+}
+
+#: mode -> how its keypoints are decided, for modes that do more than look up their pixel
+KEYPOINT_RULES: dict[str, KeypointRule] = {
+    "patch": _static_patch,
+}
+
+#: the masking modes, in the order the module docstring describes them
+MODES = tuple(PIXEL_RULES)
 
 
 @dataclass(frozen=True)
@@ -138,18 +219,7 @@ def pixel_mask(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
     Usable as the extractor's detection mask. The patch mode depends on each keypoint's size and
     has no pixel map; it gets the hard mode's map here.
     """
-    trusted = seg.uncertainty <= config.max_uncertainty
-    if config.mode == "none":
-        return np.ones(seg.labels.shape, bool)
-    if config.mode == "dynamic":
-        dynamic = class_lookup(config.dynamic_classes)[seg.labels]
-        return ~(dynamic & trusted)
-    static = class_lookup(config.static_classes)[seg.labels] & trusted
-    if config.mode == "dilate" and config.dilation > 0:
-        k = 2 * config.dilation + 1
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        static = cv2.dilate(static.astype(np.uint8), kernel).astype(bool)
-    return static
+    return PIXEL_RULES[config.mode](seg, config)
 
 
 def _box_mean(
@@ -185,18 +255,8 @@ def select_features(
         return features, MaskReport(0, 0, empty, False, np.zeros(0, np.uint8))
     x, y, sx = _pixels(features, seg)
     classes = seg.labels[y, x]
-    if config.mode == "patch":
-        h, w = seg.labels.shape
-        static = class_lookup(config.static_classes)[seg.labels].astype(np.float64)
-        if config.patch_radius is None:
-            r = np.maximum(np.round(features.sizes.astype(np.float64) * sx / 2.0), 1).astype(np.int64)
-        else:
-            r = np.full(n, config.patch_radius, np.int64)
-        frac = _box_mean(cv2.integral(static), x, y, r, w, h)
-        unc = _box_mean(cv2.integral(seg.uncertainty.astype(np.float64)), x, y, r, w, h)
-        passed = (frac >= config.patch_fraction) & (unc <= config.max_uncertainty)
-    else:
-        passed = pixel_mask(seg, config)[y, x]
+    rule = KEYPOINT_RULES.get(config.mode, _at_pixel)
+    passed = rule(features, seg, config, x, y, sx)
     n_passed = int(passed.sum())
     needed = max(config.min_kept, math.ceil(config.min_kept_fraction * n))
     fallback = n_passed < needed and n_passed < n

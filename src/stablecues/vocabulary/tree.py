@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from ..errors import VocabularyError
-from ..types import DESCRIPTOR_BYTES, BowVector, FeatureVector
+from ..errors import InputError, VocabularyError
+from ..types import DESCRIPTOR_BYTES, BowVector, DescriptorKind, FeatureVector
 from .descriptors import as_words, check_descriptors
 from .scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
 
@@ -139,6 +138,11 @@ class Vocabulary:
             self._fingerprint = h.hexdigest()
         return self._fingerprint
 
+    @property
+    def descriptor_kind(self) -> DescriptorKind:
+        """What the words are made of: binary, 32 bytes (ORB's descriptors)."""
+        return DescriptorKind("binary", int(self.descriptors.shape[1]))
+
     def info(self) -> VocabularyInfo:
         return VocabularyInfo(
             k=self.k,
@@ -168,7 +172,12 @@ class Vocabulary:
 
         Returns:
             (N,) int32 leaf node ids.
+
+        Raises:
+            InputError: descriptors that are not (N, 32) uint8; descriptors of another kind
+                (float, or binary of another width) are named as such.
         """
+        self._check_kind(descriptors)
         check_descriptors(descriptors)
         n = descriptors.shape[0]
         cur = np.zeros(n, np.int32)
@@ -192,6 +201,19 @@ class Vocabulary:
             cur[active] = best
             active = active[~self.is_leaf[best]]
         return cur
+
+    def _check_kind(self, descriptors: np.ndarray) -> None:
+        """One clear line for descriptors of another kind than the words (e.g. SIFT's)."""
+        if not isinstance(descriptors, np.ndarray) or descriptors.ndim != 2:
+            return  # check_descriptors says what is wrong
+        if descriptors.dtype not in (np.uint8, np.float32) or descriptors.shape[1] < 1:
+            return
+        kind = DescriptorKind.of(descriptors)
+        if kind != self.descriptor_kind:
+            raise InputError(
+                f"descriptors are {kind} but the vocabulary holds {self.descriptor_kind} words: "
+                "train a vocabulary for them"
+            )
 
     def direct_index_nodes(self, leaves: np.ndarray, levels_up: int | None = None) -> np.ndarray:
         """Node at level ``L - levels_up`` above each leaf (the leaf itself when shallower).
@@ -235,6 +257,10 @@ class Vocabulary:
 
         Returns:
             (BowVector, FeatureVector); both empty for N = 0.
+
+        Raises:
+            InputError: descriptors of another kind than the vocabulary's words, e.g. "descriptors
+                are 128-dim float32 but the vocabulary holds 32-byte binary words: ...".
         """
         up = self.levels_up if levels_up is None else int(levels_up)
         leaves = self.leaves_of(descriptors)
@@ -255,20 +281,6 @@ class Vocabulary:
             values = self.weights[self.word_nodes[uniq]].astype(np.float64)
         values = normalise(values, self.scoring)
         return BowVector(uniq.astype(np.int32), values), FeatureVector(nodes, up)
-
-    # ------------------------------------------------------------------ files
-    def save(self, path: str | Path) -> None:
-        """Save in the format the file name says: ``.txt`` (DBoW2 / ORB-SLAM text) or binary."""
-        from .io import save_vocabulary
-
-        save_vocabulary(self, path)
-
-    @staticmethod
-    def load(path: str | Path, levels_up: int | None = None) -> Vocabulary:
-        """Load a vocabulary file (own binary format or DBoW2 / ORB-SLAM text, detected)."""
-        from .io import load_vocabulary
-
-        return load_vocabulary(path, levels_up=levels_up)
 
 
 def _children_table(parents: np.ndarray, k: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""ORB extractor: shapes, dtypes, spread, empty results, bad input."""
+"""ORB extractor: shapes, dtypes, descriptor kind, spread, empty results, bad input."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 from stablecues.errors import ConfigError, InputError
 from stablecues.features import OrbConfig, OrbExtractor, distribute_quadtree
 from stablecues.features.orb import level_quotas
+from stablecues.types import ORB_DESCRIPTOR, DescriptorKind
 
 
 def textured(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
@@ -29,6 +30,24 @@ def test_output_shapes_and_dtypes() -> None:
     assert f.octaves.shape == f.angles.shape == f.responses.shape == f.sizes.shape == (len(f),)
     assert f.image_size == (320, 240)
     assert (f.keypoints[:, 0] >= 0).all() and (f.keypoints[:, 0] < 320).all()
+
+
+def test_extractor_states_its_descriptor_kind_and_level_scale() -> None:
+    ex = OrbExtractor(OrbConfig(n_features=200, scale_factor=1.3))
+    assert ex.descriptor_kind == ORB_DESCRIPTOR == DescriptorKind("binary", 32)
+    assert ex.level_scale == 1.3
+    f = ex.extract(textured())
+    assert f.descriptor_kind == ex.descriptor_kind
+    # octaves are pyramid levels: keypoint sizes grow with level_scale ** octave
+    assert set(np.unique(f.octaves).tolist()) <= set(range(8)) and len(np.unique(f.octaves)) > 1
+    np.testing.assert_allclose(f.sizes, 31 * 1.3 ** f.octaves.astype(np.float64), rtol=1e-4)
+    assert ex.extract(np.zeros((20, 20), np.uint8)).descriptor_kind == ORB_DESCRIPTOR
+
+
+def test_config_is_named_orb() -> None:
+    assert OrbConfig().name == "orb"
+    with pytest.raises(ConfigError, match="'orb'"):
+        OrbConfig(name="sift")
 
 
 def test_colour_and_grey_give_the_same_features() -> None:
