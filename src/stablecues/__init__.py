@@ -35,11 +35,11 @@ if TYPE_CHECKING:
         preset_names,
     )
     from .errors import StableCuesError
-    from .features import Extractor
+    from .features import Extractor, ExtractorConfig, make_extractor
     from .geometry import Calibration, PinholeCamera, load_calibration
     from .groundtruth import GroundTruth, load_ground_truth
     from .runs import load_run
-    from .types import BowVector, Entry, Features, FeatureVector, Frame, QueryResult
+    from .types import BowVector, DescriptorKind, Entry, Features, FeatureVector, Frame, QueryResult
     from .verification import Verification, Verifier, View
     from .vocabulary import Vocabulary, default_vocabulary, load_vocabulary
 
@@ -70,6 +70,9 @@ _API: dict[str, str] = {
     "load_calibration": "geometry",
     # features, vocabulary, map
     "Extractor": "features",
+    "ExtractorConfig": "features",
+    "make_extractor": "features",
+    "DescriptorKind": "types",
     "Vocabulary": "vocabulary",
     "default_vocabulary": "vocabulary",
     "load_vocabulary": "vocabulary",
@@ -90,9 +93,11 @@ __all__ = [
     "BowVector",
     "Calibration",
     "Database",
+    "DescriptorKind",
     "DetectorConfig",
     "Entry",
     "Extractor",
+    "ExtractorConfig",
     "FeatureVector",
     "Features",
     "Frame",
@@ -115,6 +120,7 @@ __all__ = [
     "load_ground_truth",
     "load_run",
     "load_vocabulary",
+    "make_extractor",
     "open_dataset",
     "preset",
     "preset_names",

@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import InputError
 
 if TYPE_CHECKING:
-    from ..mav import FlightLog
+    from ..mav import FlightLog, NavSolution
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -178,46 +178,30 @@ def _offset(text: str) -> float | Literal["estimate"]:
 
 
 def _poses(args: argparse.Namespace) -> int:
-    from ..mav import geo, sync
+    from ..mav.export import write_image_folder, write_poses
+    from ..mav.frames import read_frames
+    from ..mav.loops import loops_from_trajectory
+    from ..mav.poses import poses_for_frames
+    from ..mav.solutions import log_solution
 
     log = _read(args.log)
-    solution = sync.log_solution(log, args.source)
+    solution = log_solution(log, args.source)
     if args.frames is None and args.times is None:
         if args.dataset is not None:
             raise InputError("--dataset needs camera frames (--frames and/or --times)")
-        every = sync.resample_solution(solution, args.rate)
-        quat = every.quaternion
-        if not solution.has_attitude:
-            # no attitude in the source: a level, north-facing body (as poses_for_frames does)
-            level_north = geo.matrix_to_quat(geo.R_ENU_NED)
-            quat = np.where(np.isfinite(every.position).all(axis=1)[:, None], level_north, np.nan)
-        n = sync.write_tum(
-            args.out,
-            every.t,
-            every.position,
-            quat,
-            comments=(
-                "stablecues mav poses: t (s since log start) x y z qx qy qz qw, body(FRD)-to-world",
-                f"world: ENU metres about lat={solution.origin[0]:.8f} lon={solution.origin[1]:.8f} "
-                f"alt={solution.origin[2]:.3f} m; source: {solution.name}",
-            ),
-        )
-        print(f"{args.out}: {n} poses at {args.rate:g} Hz from {solution.name}")
-        return 0
-    frames = sync.read_frames(args.frames, args.times, time_column=args.time_column)
-    poses = sync.poses_for_frames(
+        return _poses_at_rate(args, solution)
+    frames = read_frames(args.frames, args.times, time_column=args.time_column)
+    poses = poses_for_frames(
         frames, log, solution, clock=args.clock, offset=_offset(args.offset), mount=args.mount
     )
-    n = sync.write_tum(
-        args.out, poses.frame_times, poses.positions, poses.quaternions, comments=sync.tum_comments(poses)
-    )
+    n = write_poses(args.out, poses)
     print(
         f"{args.out}: {n} of {len(frames)} frames posed from {poses.source} "
         f"(clock offset {poses.offset:.3f} s)"
     )
     if args.dataset is not None:
         keep = poses.valid
-        loops = sync.loops_from_trajectory(
+        loops = loops_from_trajectory(
             poses.positions[keep],
             max_distance=args.max_distance,
             quaternions=poses.quaternions[keep],
@@ -226,20 +210,52 @@ def _poses(args: argparse.Namespace) -> int:
             min_gap_s=args.min_gap_s,
             min_gap_frames=args.min_gap_frames,
         )
-        out = sync.write_image_folder(args.dataset, frames, poses, loops=loops, calibration=args.calib)
+        out = write_image_folder(args.dataset, frames, poses, loops=loops, calibration=args.calib)
         print(f"{out}: image-folder dataset, {int(keep.sum())} frames, {int(loops.sum())} loop pairs")
     return 0
 
 
-def _gt(args: argparse.Namespace) -> int:
-    from ..mav import sync
-    from ..mav.plots import loop_figure
+def _poses_at_rate(args: argparse.Namespace, solution: NavSolution) -> int:
+    """Body poses at ``--rate`` over the solution's span (no camera frames given)."""
+    from ..geometry.rotations import matrix_to_quat
+    from ..mav.geo import R_ENU_NED
+    from ..mav.poses import pose_matrices
+    from ..mav.solutions import resample_solution
+    from ..trajectory import write_tum
 
-    times, positions, quats = sync.read_tum(args.poses)
-    gt = sync.loops_from_trajectory(
+    every = resample_solution(solution, args.rate)
+    quat = every.quaternion
+    if not solution.has_attitude:
+        # no attitude in the source: a level, north-facing body (as poses_for_frames does)
+        level_north = matrix_to_quat(R_ENU_NED)
+        quat = np.where(np.isfinite(every.position).all(axis=1)[:, None], level_north, np.nan)
+    origin = solution.origin
+    n = write_tum(
+        args.out,
+        every.t,
+        pose_matrices(every.position, quat),
+        comments=(
+            "stablecues mav poses: t (s since log start) x y z qx qy qz qw, body(FRD)-to-world",
+            f"world: ENU metres about lat={origin[0]:.8f} lon={origin[1]:.8f} "
+            f"alt={origin[2]:.3f} m; source: {solution.name}",
+        ),
+    )
+    print(f"{args.out}: {n} poses at {args.rate:g} Hz from {solution.name}")
+    return 0
+
+
+def _gt(args: argparse.Namespace) -> int:
+    from ..geometry.rotations import matrix_to_quat
+    from ..mav.loops import loops_from_trajectory
+    from ..mav.plots import loop_figure
+    from ..trajectory import read_tum
+
+    times, poses = read_tum(args.poses)
+    positions = poses[:, :3, 3]
+    gt = loops_from_trajectory(
         positions,
         max_distance=args.max_distance,
-        quaternions=quats,
+        quaternions=matrix_to_quat(poses[:, :3, :3]) if args.max_angle is not None else None,
         max_angle_deg=args.max_angle,
         times=times,
         min_gap_s=args.min_gap_s,

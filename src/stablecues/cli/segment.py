@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .vocab import add_extractor_options
+from .options import add_extractor_options, extractor_from_args
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -144,7 +144,6 @@ def _image(args: argparse.Namespace) -> int:
     from ..semantics.inference import SegmentationModel
     from ..semantics.masking import MaskingConfig, select_features
     from ..semantics.viz import plot_keypoints, plot_overlay, plot_uncertainty
-    from .vocab import extractor_from_args
 
     overrides: dict[str, Any] = {"mode": args.mode}
     if args.max_uncertainty is not None:

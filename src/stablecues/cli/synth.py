@@ -64,7 +64,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..datasets.synthetic import LoopTruthConfig, SyntheticTownConfig, write_sequence
+    from ..synthetic import LoopTruthConfig, SyntheticTownConfig, write_sequence
 
     cfg = SyntheticTownConfig(
         frames=args.frames,

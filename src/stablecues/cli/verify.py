@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from .options import add_extractor_options, extractor_from_args
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -40,7 +42,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--triangles", type=int, help="number of triangles T")
     p.add_argument("--acceptance", choices=("all", "majority", "at_least"), help="triangle acceptance rule")
     p.add_argument("--min-agree", type=int, help="agreeing triangles needed with --acceptance at_least")
-    p.add_argument("--features", type=int, default=2000, help="ORB features per image (default 2000)")
+    add_extractor_options(p, "per image", n_features=2000)
     p.add_argument(
         "--no-vocabulary", action="store_true", help="brute-force matching instead of the direct index"
     )
@@ -82,9 +84,8 @@ def run(args: argparse.Namespace) -> int:
         if value is not None
     }
     config = preset(args.preset, **overrides)
-    pipeline = ImagePairVerifier(
-        calib, config, n_features=args.features, use_vocabulary=not args.no_vocabulary
-    )
+    features = extractor_from_args(args)
+    pipeline = ImagePairVerifier(calib, config, features=features, use_vocabulary=not args.no_vocabulary)
     out = pipeline.verify(
         args.image_a,
         args.image_b,
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             "image_b": str(args.image_b),
             "calibration": calib.source,
             "config": to_dict(config),
-            "n_features": args.features,
+            "features": to_dict(features),
             "result": res.to_dict(),
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)

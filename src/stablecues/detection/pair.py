@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import types
 from ..errors import CalibrationError, InputError
-from ..features import OrbConfig
+from ..features import ExtractorConfig, OrbConfig
 from ..geometry.camera import Calibration
 from ..geometry.depth import DepthConfig
 from ..geometry.stereo import StereoConfig
@@ -76,11 +76,12 @@ class ImagePairVerifier:
     Args:
         calib: calibration of the camera (raw or rectified stereo, RGB-D, or monocular).
         config: verification settings.
-        n_features: ORB features per image.
+        n_features: ORB features per image (when ``features`` is not given).
         use_vocabulary: match through the vocabulary's direct index (else brute force).
         stereo: sparse stereo settings.
         depth: depth-image lifting settings.
         vocabulary: the vocabulary (default: the shipped one).
+        features: the feature extractor's settings (any registered extractor).
     """
 
     def __init__(
@@ -93,10 +94,11 @@ class ImagePairVerifier:
         stereo: StereoConfig | None = None,
         depth: DepthConfig | None = None,
         vocabulary: Vocabulary | None = None,
+        features: ExtractorConfig | None = None,
     ) -> None:
         self.calibration = calib
         detector_config = DetectorConfig(
-            features=OrbConfig(n_features=n_features),
+            features=features or OrbConfig(n_features=n_features),
             masking=None,
             verification=config or VerificationConfig(),
         )
