@@ -489,6 +489,49 @@ def ground_truth_from_poses(positions: np.ndarray, *, max_distance: float, **kwa
     return GroundTruth(matrix, notes={"from_poses": settings})
 
 
+def _check_loop_thresholds(
+    max_distance: float,
+    min_gap_s: float,
+    min_gap_frames: int,
+    yaws: np.ndarray | None,
+    max_angle_deg: float | None,
+    times: np.ndarray | None,
+) -> None:
+    """Check the options of :func:`loops_from_poses` that need no array.
+
+    Raises:
+        InputError: a negative or non-finite distance, negative gaps, ``yaws`` without
+            ``max_angle_deg`` (or the reverse), or ``min_gap_s`` without ``times``.
+    """
+    if not np.isfinite(max_distance) or max_distance < 0:
+        raise InputError(f"max_distance: expected a finite value >= 0, got {max_distance}")
+    if min_gap_s < 0 or min_gap_frames < 0:
+        raise InputError(f"min gaps must be >= 0, got min_gap_s={min_gap_s}, min_gap_frames={min_gap_frames}")
+    if (yaws is None) != (max_angle_deg is None):
+        raise InputError("yaws and max_angle_deg must be given together")
+    if times is None and min_gap_s > 0:
+        raise InputError(f"min_gap_s={min_gap_s} needs times")
+
+
+def _yaw_test(
+    yaws: np.ndarray | None, max_angle_deg: float | None, n: int
+) -> tuple[np.ndarray | None, float]:
+    """(N,) float64 yaws and the cosine limit of the yaw test; (None, -2.0) when not used.
+
+    ``|wrapped difference| <= a`` is tested as ``cos(difference) >= cos(a)`` for a in [0, 180].
+
+    Raises:
+        InputError: yaws of the wrong shape, or a negative or NaN ``max_angle_deg``.
+    """
+    if yaws is None or max_angle_deg is None:
+        return None, -2.0
+    yaw_arr = np.asarray(yaws, dtype=np.float64)
+    check_array("yaws", yaw_arr, shape=(n,))
+    if not max_angle_deg >= 0:  # also rejects NaN
+        raise InputError(f"max_angle_deg: expected >= 0, got {max_angle_deg}")
+    return yaw_arr, float(np.cos(np.radians(min(max_angle_deg, 180.0))))
+
+
 _ROW_BLOCK = 512  # rows per block when building matrices from poses (bounds the memory)
 
 
@@ -534,27 +577,12 @@ def loops_from_poses(
     if not np.issubdtype(positions.dtype, np.number):
         raise InputError(f"positions: expected a numeric array, got dtype {positions.dtype}")
     n = positions.shape[0]
-    if not np.isfinite(max_distance) or max_distance < 0:
-        raise InputError(f"max_distance: expected a finite value >= 0, got {max_distance}")
-    if min_gap_s < 0 or min_gap_frames < 0:
-        raise InputError(f"min gaps must be >= 0, got min_gap_s={min_gap_s}, min_gap_frames={min_gap_frames}")
-    if (yaws is None) != (max_angle_deg is None):
-        raise InputError("yaws and max_angle_deg must be given together")
-    if times is None and min_gap_s > 0:
-        raise InputError(f"min_gap_s={min_gap_s} needs times")
-
+    _check_loop_thresholds(max_distance, min_gap_s, min_gap_frames, yaws, max_angle_deg, times)
     pos = positions.astype(np.float64)
     valid = np.all(np.isfinite(pos), axis=1)
-    yaw_arr: np.ndarray | None = None
-    cos_limit = -2.0
-    if yaws is not None and max_angle_deg is not None:
-        yaw_arr = np.asarray(yaws, dtype=np.float64)
-        check_array("yaws", yaw_arr, shape=(n,))
-        if not max_angle_deg >= 0:  # also rejects NaN
-            raise InputError(f"max_angle_deg: expected >= 0, got {max_angle_deg}")
+    yaw_arr, cos_limit = _yaw_test(yaws, max_angle_deg, n)
+    if yaw_arr is not None:
         valid &= np.isfinite(yaw_arr)
-        # |wrapped difference| <= a  <=>  cos(difference) >= cos(a) for a in [0, 180]
-        cos_limit = float(np.cos(np.radians(min(max_angle_deg, 180.0))))
     time_arr: np.ndarray | None = None
     if times is not None:
         time_arr = np.asarray(times, dtype=np.float64)

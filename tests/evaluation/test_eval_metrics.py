@@ -7,7 +7,6 @@ import pytest
 
 from stablecues.errors import InputError
 from stablecues.evaluation.metrics import eligible_limit, evaluate_detections
-from stablecues.runs import format_timing_table, timing_table
 
 
 def _small() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -152,12 +151,3 @@ def test_r100p_equals_brute_force_sweep(seed: int) -> None:
     assert ev.tp > 10 and 0 < best < 1  # a meaningful case
     assert ev.recall_at_100p == pytest.approx(best)
     assert ev.auc == pytest.approx(ap)
-
-
-def test_timing_table() -> None:
-    table = timing_table({"bow": np.array([1.0, 3.0, np.nan]), "verify": np.array([np.nan, np.nan, np.nan])})
-    assert table["bow"] == {"mean": 2.0, "std": 1.0, "min": 1.0, "max": 3.0, "count": 2}
-    assert table["verify"]["count"] == 0 and table["verify"]["mean"] is None
-    assert table["total"]["mean"] == 2.0 and list(table) == ["bow", "verify", "total"]
-    text = format_timing_table(table)
-    assert "bow" in text and "2.00" in text

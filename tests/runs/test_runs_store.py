@@ -1,4 +1,4 @@
-"""The run directory: writing, reading back, interrupted runs, resuming, and evaluating."""
+"""stablecues.runs.store: writing a run directory, reading it back, interrupted runs, resuming."""
 
 from __future__ import annotations
 
@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 
 from stablecues.errors import DatasetError, InputError
-from stablecues.evaluation.evaluate import eval_file_name, evaluate_run
-from stablecues.groundtruth import GroundTruth
 from stablecues.runs import RunWriter, load_run
 
 STAGES = ["features", "bow", "verify"]
@@ -137,31 +135,3 @@ def test_load_run_errors(tmp_path: Path) -> None:
     (tmp_path / "run" / "meta.json").write_text("[1, 2]")
     with pytest.raises(DatasetError, match="JSON object"):
         load_run(tmp_path / "run")
-
-
-def test_evaluate_run(tmp_path: Path) -> None:
-    _write(tmp_path / "run")
-    run = load_run(tmp_path / "run")
-    gt = np.zeros((8, 8), bool)
-    gt[3, 0] = gt[5, 2] = gt[4, 0] = True
-    ev, doc = evaluate_run(run, GroundTruth(gt), protocol="exact", exclude=1)
-    # accepted detections: 3->0 (right), 5->2 (right); 4->1 not accepted; queries 0..5
-    assert (ev.positives, ev.tp, ev.fp, ev.fn) == (3, 2, 0, 1)
-    assert doc["recall_at_100p"] == pytest.approx(2 / 3)
-    for key in (
-        "auc",
-        "gt_sha256",
-        "gt_file",
-        "tolerance",
-        "exclude",
-        "timing_ms",
-        "pr_curve",
-        "status_counts",
-    ):
-        assert key in doc
-    ev_all, _ = evaluate_run(run, GroundTruth(gt), detections="all", exclude=1)
-    assert (ev_all.tp, ev_all.fp) == (2, 1)
-    with pytest.raises(DatasetError, match="covers 4 frames"):
-        evaluate_run(run, GroundTruth(np.zeros((4, 4), bool)))
-    assert eval_file_name("exact", 0) == "eval_exact.json"
-    assert eval_file_name("ibow", 2) == "eval_ibow_2.json"

@@ -98,6 +98,60 @@ def _find_tum_groundtruth(seq: Path) -> Path | None:
     return None
 
 
+def _find_groundtruth(mav0: Path, seq: Path) -> Path | None:
+    """The sequence's body ground truth: ``state_groundtruth_estimate0`` or ``vicon0``, else TUM."""
+    for cand in (mav0 / "state_groundtruth_estimate0" / "data.csv", mav0 / "vicon0" / "data.csv"):
+        if cand.is_file():
+            return cand
+    return _find_tum_groundtruth(seq)
+
+
+def _cam0_records(cam0: Path) -> tuple[np.ndarray, list[FrameRecord]]:
+    """(N,) float64 seconds and one record per image listed in ``cam0/data.csv``.
+
+    Raises:
+        DatasetError: a malformed list, or a listed image that is not in ``cam0/data``.
+    """
+    stamps, names = read_euroc_list(cam0 / "data.csv")
+    times = ns_to_seconds(stamps)
+    records = []
+    for t, name in zip(times, names, strict=True):
+        img = cam0 / "data" / name
+        if not img.is_file():
+            raise DatasetError(f"{cam0 / 'data.csv'}: lists {name}, which is not in {cam0 / 'data'}")
+        records.append(FrameRecord(image=img, timestamp=float(t), name=f"cam0/{name}"))
+    return times, records
+
+
+def _attach_right(records: list[FrameRecord], times: np.ndarray, cam1: Path) -> None:
+    """Attach cam1's image taken within 2 ms of each frame (at ``times``) as its right image.
+
+    Raises:
+        DatasetError: a malformed list, or a frame without a right image within 2 ms.
+    """
+    stamps1, names1 = read_euroc_list(cam1 / "data.csv")
+    idx = nearest(times, ns_to_seconds(stamps1), 0.002)
+    for rec, k in zip(records, idx, strict=True):
+        if k < 0:
+            raise DatasetError(f"{cam1 / 'data.csv'}: no right image within 2 ms of {rec.name}")
+        rec.right = cam1 / "data" / names1[k]
+
+
+def _attach_groundtruth(
+    records: list[FrameRecord], times: np.ndarray, gt_file: Path, t_bs: np.ndarray, max_difference: float
+) -> None:
+    """Give each frame (at ``times``) the camera pose: nearest body pose composed with ``t_bs``.
+
+    Raises:
+        DatasetError: a malformed ground-truth file (EuRoC ``.csv`` or TUM otherwise).
+    """
+    gtimes, gposes = read_euroc(gt_file) if gt_file.suffix == ".csv" else read_tum(gt_file)
+    idx = nearest(times, gtimes, max_difference)
+    for rec, k in zip(records, idx, strict=True):
+        if k >= 0:
+            rec.pose = gposes[k] @ t_bs
+
+
 def open_euroc(
     path: str | Path,
     *,
@@ -124,43 +178,16 @@ def open_euroc(
     cam0 = mav0 / "cam0"
     if not cam0.is_dir():
         raise DatasetError(f"{root}: expected a EuRoC sequence with mav0/cam0/, found none")
-    stamps, names = read_euroc_list(cam0 / "data.csv")
-    times = ns_to_seconds(stamps)
-    records = []
-    for t, name in zip(times, names, strict=True):
-        img = cam0 / "data" / name
-        if not img.is_file():
-            raise DatasetError(f"{cam0 / 'data.csv'}: lists {name}, which is not in {cam0 / 'data'}")
-        records.append(FrameRecord(image=img, timestamp=float(t), name=f"cam0/{name}"))
-
+    times, records = _cam0_records(cam0)
     cam1 = mav0 / "cam1"
     if stereo and (cam1 / "data.csv").is_file():
-        stamps1, names1 = read_euroc_list(cam1 / "data.csv")
-        idx = nearest(times, ns_to_seconds(stamps1), 0.002)
-        for rec, k in zip(records, idx, strict=True):
-            if k < 0:
-                raise DatasetError(f"{cam1 / 'data.csv'}: no right image within 2 ms of {rec.name}")
-            rec.right = cam1 / "data" / names1[k]
+        _attach_right(records, times, cam1)
 
     sensor = cam0 / "sensor.yaml"
     t_bs = sensor_extrinsics(sensor) if sensor.is_file() else np.eye(4)
-    gt_file: Path | None = Path(groundtruth) if groundtruth is not None else None
-    if gt_file is None:
-        for cand in (mav0 / "state_groundtruth_estimate0" / "data.csv", mav0 / "vicon0" / "data.csv"):
-            if cand.is_file():
-                gt_file = cand
-                break
-    if gt_file is None:
-        gt_file = _find_tum_groundtruth(seq)
+    gt_file = Path(groundtruth) if groundtruth is not None else _find_groundtruth(mav0, seq)
     if gt_file is not None:
-        if gt_file.suffix == ".csv":
-            gtimes, gposes = read_euroc(gt_file)
-        else:
-            gtimes, gposes = read_tum(gt_file)
-        idx = nearest(times, gtimes, max_difference)
-        for rec, k in zip(records, idx, strict=True):
-            if k >= 0:
-                rec.pose = gposes[k] @ t_bs
+        _attach_groundtruth(records, times, gt_file, t_bs, max_difference)
 
     loops = seq / "loops.npy"
     return SequenceDataset(

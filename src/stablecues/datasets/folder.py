@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import DatasetError
 from ..imageio import list_images, match_by_stem
 from ..trajectory import read_times, read_tum
-from .base import FrameRecord, SequenceDataset, find_first
+from .base import FrameRecord, SequenceDataset, attach_poses, attach_times, find_first
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +50,52 @@ def read_settings_value(path: Path, key: str) -> float | None:
             except ValueError:
                 raise DatasetError(f"{path}: {key} should be a number, found {m.group(1)!r}") from None
     return None
+
+
+def _attach_side_folders(root: Path, images: list[Path], records: list[FrameRecord]) -> None:
+    """Attach the right / depth / labels image of the same name to each record, per folder present.
+
+    Raises:
+        DatasetError: a side folder lacks the image of some frame.
+    """
+    for sub, attr in (("right", "right"), ("depth", "depth"), ("labels", "labels")):
+        folder = root / sub
+        if folder.is_dir():
+            for rec, other in zip(records, match_by_stem(images, folder, sub), strict=True):
+                setattr(rec, attr, other)
+
+
+def _attach_tum_poses(records: list[FrameRecord], poses_file: Path) -> None:
+    """Attach ``poses.txt`` (TUM format, one line per image); its times fill missing timestamps.
+
+    Raises:
+        DatasetError: a malformed file, or not one pose per image.
+    """
+    ptimes, poses = read_tum(poses_file)
+    attach_poses(records, poses_file, poses)
+    for rec, t in zip(records, ptimes, strict=True):
+        if not np.isfinite(rec.timestamp):
+            rec.timestamp = float(t)
+
+
+def _depth_factor(
+    root: Path, calib: Path | None, depth_factor: float | None, records: list[FrameRecord]
+) -> float:
+    """Raw depth units per metre: the one given, else calib.yaml's DepthMapFactor, else 1000.
+
+    Raises:
+        DatasetError: a factor that is not > 0, or a DepthMapFactor that is not a number.
+    """
+    factor = depth_factor
+    if factor is None and calib is not None and calib.suffix in (".yaml", ".yml"):
+        factor = read_settings_value(calib, "DepthMapFactor")
+    if factor is None:
+        factor = DEFAULT_DEPTH_FACTOR
+        if records and records[0].depth is not None:
+            logger.warning("%s: no DepthMapFactor given; assuming %g depth units per metre", root, factor)
+    if not factor > 0:
+        raise DatasetError(f"{calib or root}: DepthMapFactor must be > 0, found {factor}")
+    return float(factor)
 
 
 def open_folder(
@@ -76,54 +122,26 @@ def open_folder(
         raise DatasetError(f"{root}: dataset folder not found")
     image_dir = root / "images" if (root / "images").is_dir() else root
     images = list_images(image_dir)
-    n = len(images)
     records = [FrameRecord(image=p) for p in images]
-
-    for sub, attr in (("right", "right"), ("depth", "depth"), ("labels", "labels")):
-        folder = root / sub
-        if folder.is_dir():
-            for rec, other in zip(records, match_by_stem(images, folder, sub), strict=True):
-                setattr(rec, attr, other)
-
+    _attach_side_folders(root, images, records)
     times_file = root / "times.txt"
     if times_file.is_file():
-        times = read_times(times_file)
-        if times.shape[0] != n:
-            raise DatasetError(
-                f"{times_file}: expected {n} timestamps (one per image), found {times.shape[0]}"
-            )
-        for rec, t in zip(records, times, strict=True):
-            rec.timestamp = float(t)
-
+        attach_times(records, times_file, read_times(times_file))
     poses_file = root / "poses.txt"
     if poses_file.is_file():
-        ptimes, poses = read_tum(poses_file)
-        if poses.shape[0] != n:
-            raise DatasetError(f"{poses_file}: expected {n} poses (one per image), found {poses.shape[0]}")
-        for rec, t, pose in zip(records, ptimes, poses, strict=True):
-            rec.pose = pose
-            if not np.isfinite(rec.timestamp):
-                rec.timestamp = float(t)
+        _attach_tum_poses(records, poses_file)
 
     calib = Path(calibration) if calibration is not None else find_first(root, ("calib.yaml", "calib.yml"))
     if calib is not None and not calib.is_file():
         raise DatasetError(f"{calib}: calibration file not found")
-    factor = depth_factor
-    if factor is None and calib is not None and calib.suffix in (".yaml", ".yml"):
-        factor = read_settings_value(calib, "DepthMapFactor")
-    if factor is None:
-        factor = DEFAULT_DEPTH_FACTOR
-        if records and records[0].depth is not None:
-            logger.warning("%s: no DepthMapFactor given; assuming %g depth units per metre", root, factor)
-    if not factor > 0:
-        raise DatasetError(f"{calib or root}: DepthMapFactor must be > 0, found {factor}")
+    factor = _depth_factor(root, calib, depth_factor, records)
 
     loops = root / "loops.npy"
     return SequenceDataset(
         root=root,
         records=records,
         format="folder",
-        depth_factor=float(factor),
+        depth_factor=factor,
         calibration_path=calib,
         gt_path=loops if loops.is_file() else None,
         grey=grey,

@@ -16,14 +16,16 @@ the (pure translation) offset that ``calib.txt`` gives between the two.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
 from ..errors import DatasetError
+from ..geometry.calibration import load_kitti
+from ..geometry.camera import Calibration
 from ..imageio import list_images, match_by_stem
 from ..trajectory import read_kitti, read_times
-from .base import FrameRecord, SequenceDataset
+from .base import FrameRecord, SequenceDataset, attach_poses, attach_times, check_one_per_image
 
 
 def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
@@ -64,6 +66,39 @@ def _find_poses(root: Path) -> Path | None:
     return None
 
 
+def _resolve_cameras(root: Path, cameras: str) -> str:
+    """The cameras to read, "grey" or "colour"; "auto" is grey when ``image_0/`` is present.
+
+    Raises:
+        DatasetError: an unknown camera choice.
+    """
+    if cameras == "auto":
+        cameras = "grey" if (root / "image_0").is_dir() else "colour"
+    if cameras not in ("grey", "colour"):
+        raise DatasetError(f"cameras: expected 'auto', 'grey' or 'colour', got {cameras!r}")
+    return cameras
+
+
+def _camera_offset(calib: dict[str, np.ndarray] | None, calib_file: Path, pname: str) -> np.ndarray:
+    """(4, 4) float64 pose of camera ``pname`` in the grey camera's frame (a pure translation).
+
+    Raises:
+        DatasetError: ``calib.txt`` is missing or has no ``pname`` line.
+    """
+    if calib is None or pname not in calib:
+        raise DatasetError(f"{calib_file}: {pname} needed to place the colour camera's poses")
+    p = calib[pname]
+    t_cam = np.linalg.solve(p[:, :3], p[:, 3])  # x_cam = x_cam0 + t_cam
+    offset = np.eye(4)
+    offset[:3, 3] = -t_cam
+    return offset
+
+
+def _load_colour_calibration(path: Path) -> Calibration:
+    """The colour pair's calibration from KITTI ``calib.txt`` (P2 / P3)."""
+    return load_kitti(path, pair="colour")
+
+
 def open_kitti(
     path: str | Path,
     *,
@@ -87,60 +122,34 @@ def open_kitti(
     root = Path(path)
     if not root.is_dir():
         raise DatasetError(f"{root}: KITTI sequence folder not found")
-    if cameras == "auto":
-        cameras = "grey" if (root / "image_0").is_dir() else "colour"
-    if cameras not in ("grey", "colour"):
-        raise DatasetError(f"cameras: expected 'auto', 'grey' or 'colour', got {cameras!r}")
+    pair = _resolve_cameras(root, cameras)
     left_name, right_name, pname = (
-        ("image_0", "image_1", "P0") if cameras == "grey" else ("image_2", "image_3", "P2")
+        ("image_0", "image_1", "P0") if pair == "grey" else ("image_2", "image_3", "P2")
     )
     left_dir = root / left_name
     if not left_dir.is_dir():
         raise DatasetError(f"{root}: expected a KITTI sequence with a {left_name}/ folder, found none")
     images = list_images(left_dir, left_name)
-    n = len(images)
     records = [FrameRecord(image=p) for p in images]
     if stereo and (root / right_name).is_dir():
         for rec, other in zip(records, match_by_stem(images, root / right_name, right_name), strict=True):
             rec.right = other
-
     times_file = root / "times.txt"
     if times_file.is_file():
-        times = read_times(times_file, "times")
-        if times.shape[0] != n:
-            raise DatasetError(
-                f"{times_file}: expected {n} timestamps (one per image), found {times.shape[0]}"
-            )
-        for rec, t in zip(records, times, strict=True):
-            rec.timestamp = float(t)
+        attach_times(records, times_file, read_times(times_file, "times"))
 
     calib_file = root / "calib.txt"
     calib = read_kitti_calib(calib_file) if calib_file.is_file() else None
     pose_file = Path(poses) if poses is not None else _find_poses(root)
     if pose_file is not None:
         gt = read_kitti(pose_file)
-        if gt.shape[0] != n:
-            raise DatasetError(f"{pose_file}: expected {n} poses (one per image), found {gt.shape[0]}")
+        check_one_per_image(pose_file, "poses", len(records), gt.shape[0])
         if pname != "P0":
-            if calib is None or pname not in calib:
-                raise DatasetError(f"{calib_file}: {pname} needed to place the colour camera's poses")
-            p = calib[pname]
-            t_cam = np.linalg.solve(p[:, :3], p[:, 3])  # x_cam = x_cam0 + t_cam
-            offset = np.eye(4)
-            offset[:3, 3] = -t_cam
-            gt = gt @ offset
-        for rec, pose in zip(records, gt, strict=True):
-            rec.pose = pose
+            gt = gt @ _camera_offset(calib, calib_file, pname)
+        attach_poses(records, pose_file, gt)
 
     loops = root / "loops.npy"
-    loader = None
-    if cameras == "colour":
-
-        def loader(path: Path) -> Any:
-            from ..geometry.calibration import load_kitti
-
-            return load_kitti(path, pair="colour")
-
+    loader = _load_colour_calibration if pair == "colour" else None
     return SequenceDataset(
         root=root,
         records=records,

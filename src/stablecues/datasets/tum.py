@@ -63,6 +63,72 @@ def _find_groundtruth(root: Path) -> Path | None:
     return found[0] if len(found) == 1 else None
 
 
+def _colour_images(root: Path) -> tuple[np.ndarray, list[Path]]:
+    """The colour images and their times: from ``rgb.txt``, else from images named by timestamp.
+
+    Raises:
+        DatasetError: a malformed ``rgb.txt`` or one listing a missing image; without it,
+            no images or an image not named by its timestamp.
+    """
+    rgb_list = root / "rgb.txt"
+    if rgb_list.is_file():
+        times, images = _read_list(rgb_list, root, "rgb.txt")
+        for img in images:
+            if not img.is_file():
+                raise DatasetError(f"{rgb_list}: lists {img.relative_to(root)}, which is not there")
+        return times, images
+    image_dir = root / "rgb" if (root / "rgb").is_dir() else root
+    images = list_images(image_dir)
+    bad = [p.name for p in images if not _TIMESTAMP_NAME.match(p.stem)]
+    if bad:
+        raise DatasetError(
+            f"{root}: expected rgb.txt, or images named by timestamp (like 1311868169.163498.png); "
+            f"found {bad[0]!r}"
+        )
+    times = np.array([float(p.stem) for p in images], dtype=np.float64)
+    order = np.argsort(times, kind="stable")
+    return times[order], [images[i] for i in order]
+
+
+def _attach_depth(
+    records: list[FrameRecord], times: np.ndarray, depth_list: Path, root: Path, max_difference: float
+) -> None:
+    """Associate the images of ``depth.txt`` with the frames (at ``times``), as TUM's associate.py."""
+    dtimes, dfiles = _read_list(depth_list, root, "depth.txt")
+    match = associate(times, dtimes, max_difference)
+    for rec, k in zip(records, match, strict=True):
+        if k >= 0:
+            rec.depth = dfiles[k]
+
+
+def _attach_groundtruth(
+    records: list[FrameRecord], times: np.ndarray, gt_file: Path, max_difference: float
+) -> None:
+    """Give each frame (at ``times``) the pose of the nearest ground-truth time within ``max_difference``."""
+    gtimes, gposes = read_tum(gt_file)
+    idx = nearest(times, gtimes, max_difference)
+    for rec, k in zip(records, idx, strict=True):
+        if k >= 0:
+            rec.pose = gposes[k]
+
+
+def _find_calibration(root: Path, calibration: str | Path | None) -> Path | None:
+    """The calibration given, else ``calib.yaml``, else the TUM camera named by the folder.
+
+    Raises:
+        DatasetError: a calibration given that is neither a file nor a TUM camera name.
+    """
+    calib = Path(calibration) if calibration is not None else find_first(root, ("calib.yaml", "calib.yml"))
+    if calib is None:
+        # TUM ships no calibration file: name the camera ("fr1".."fr3") from the sequence name,
+        # which stablecues.geometry.load_calibration understands
+        m = _FREIBURG.search(root.name)
+        return Path(f"fr{m.group(1)}") if m else None
+    if not calib.is_file() and not _TUM_CAMERA.match(str(calib)):
+        raise DatasetError(f"{calib}: calibration file not found")
+    return calib
+
+
 def open_tum(
     path: str | Path,
     *,
@@ -91,51 +157,15 @@ def open_tum(
     root = Path(path)
     if not root.is_dir():
         raise DatasetError(f"{root}: TUM sequence folder not found")
-    rgb_list = root / "rgb.txt"
-    if rgb_list.is_file():
-        times, images = _read_list(rgb_list, root, "rgb.txt")
-        for img in images:
-            if not img.is_file():
-                raise DatasetError(f"{rgb_list}: lists {img.relative_to(root)}, which is not there")
-    else:
-        image_dir = root / "rgb" if (root / "rgb").is_dir() else root
-        images = list_images(image_dir)
-        bad = [p.name for p in images if not _TIMESTAMP_NAME.match(p.stem)]
-        if bad:
-            raise DatasetError(
-                f"{root}: expected rgb.txt, or images named by timestamp (like 1311868169.163498.png); "
-                f"found {bad[0]!r}"
-            )
-        times = np.array([float(p.stem) for p in images], dtype=np.float64)
-        order = np.argsort(times, kind="stable")
-        times, images = times[order], [images[i] for i in order]
-
+    times, images = _colour_images(root)
     records = [FrameRecord(image=img, timestamp=float(t)) for img, t in zip(images, times, strict=True)]
-
     depth_list = root / "depth.txt"
     if depth_list.is_file():
-        dtimes, dfiles = _read_list(depth_list, root, "depth.txt")
-        match = associate(times, dtimes, max_difference)
-        for rec, k in zip(records, match, strict=True):
-            if k >= 0:
-                rec.depth = dfiles[k]
-
+        _attach_depth(records, times, depth_list, root, max_difference)
     gt_file = Path(groundtruth) if groundtruth is not None else _find_groundtruth(root)
     if gt_file is not None:
-        gtimes, gposes = read_tum(gt_file)
-        idx = nearest(times, gtimes, max_difference)
-        for rec, k in zip(records, idx, strict=True):
-            if k >= 0:
-                rec.pose = gposes[k]
-
-    calib = Path(calibration) if calibration is not None else find_first(root, ("calib.yaml", "calib.yml"))
-    if calib is None:
-        # TUM ships no calibration file: name the camera ("fr1".."fr3") from the sequence name,
-        # which stablecues.geometry.load_calibration understands
-        m = _FREIBURG.search(root.name)
-        calib = Path(f"fr{m.group(1)}") if m else None
-    elif not calib.is_file() and not _TUM_CAMERA.match(str(calib)):
-        raise DatasetError(f"{calib}: calibration file not found")
+        _attach_groundtruth(records, times, gt_file, max_difference)
+    calib = _find_calibration(root, calibration)
     loops = root / "loops.npy"
     return SequenceDataset(
         root=root,

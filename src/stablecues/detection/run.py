@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..config import to_dict
+from ..errors import DatasetError
 from ..runs import RunWriter
 from .config import DetectorConfig
 from .decision import LoopDecision
@@ -71,68 +72,34 @@ def run_dataset(
     out.mkdir(parents=True, exist_ok=True)
     db_path = Path(database) if database is not None else out / "map.sqlite"
     if not resume and db_path.exists():
-        if database is not None:  # a file the user named: never delete it silently
-            from ..errors import DatasetError
-
-            raise DatasetError(f"{db_path}: database file exists; continue it with --resume or remove it")
-        for suffix in ("", "-wal", "-shm"):
-            Path(str(db_path) + suffix).unlink(missing_ok=True)
+        _remove_database(db_path, named=database is not None)
     n = len(dataset) if max_frames is None else min(len(dataset), max_frames)
-    run_meta = {"preset": preset_name, "frames": n, "exclude": config.query.exclude_recent,
-                "score_column": "geometric inliers + normalised BoW score"
-                if config.confidence == "inliers" and config.verification is not None
-                else "normalised BoW score",
-                "semantics": "no masking" if config.masking is None or config.masking.mode == "none"
-                else f"{config.masking.mode} mask from the {config.semantic_source}",
-                **(meta or {})}
-    writer = RunWriter(out, to_dict(config), run_meta, stages=STAGES,
-                       mode="resume" if resume else "overwrite")
+    writer = RunWriter(
+        out,
+        to_dict(config),
+        _run_meta(config, preset_name, n, meta),
+        stages=STAGES,
+        mode="resume" if resume else "overwrite",
+    )
     detector = LoopDetector(config, database=db_path, segmenter=segmenter)
     start = writer.next_frame
     if len(detector) != start:
         raise_mismatch(out, len(detector), start)
-    sim_path = out / "similarity.npy"
-    # the similarity matrix is N x N float32 (4 bytes x N^2): turn it off for very long runs
-    sim = np.zeros((n, n) if config.similarity else (0, 0), np.float32)
-    if config.similarity and resume and sim_path.exists():
-        old = np.load(sim_path)
-        k = min(old.shape[0], n)
-        sim[:k, :k] = old[:k, :k]
-    statuses: Counter[str] = Counter()
-    accepted: list[LoopDecision] = []
-    fallbacks = 0
-    totals: list[float] = []
-    frames = iter(dataset)
+    sim = _initial_similarity(config, n, out / "similarity.npy", resume)
+    tally = _Tally()
     bar = tqdm(total=n, initial=start, desc=f"run {preset_name}", unit="frame", disable=not progress)
     try:
-        for i, frame in enumerate(frames):
+        for i, frame in enumerate(dataset):
             if i >= n:
                 break
             if i < start:
                 continue
             d = detector.process(frame)
-            statuses[d.status.value] += 1
-            fallbacks += int(d.mask_fallback)
-            totals.append(d.timings["total"])
-            if d.accepted:
-                accepted.append(d)
+            tally.count(d)
             row = detector.last_similarity
             if row is not None:
                 sim[i, : min(row.size, i)] = row[: min(row.size, i)]
-            v = d.verification
-            extra: dict[str, Any] = {
-                "n_features": d.n_features, "n_kept": d.n_kept, "mask_fallback": d.mask_fallback,
-                "consistent": d.consistent, "nss": d.nss_factor,
-            }
-            if v is not None:
-                extra.update(verifier=str(v.method), verification=str(v.status), reason=v.reason,
-                             inliers=int(np.count_nonzero(v.inliers)), triangles_agree=v.n_triangles_agree)
-                if d.relative_pose is not None:
-                    extra["relative_pose"] = d.relative_pose.tolist()
-            writer.add(d.frame_index, float(frame.timestamp), d.status.value, d.candidate_frame,
-                       d.confidence if d.candidate >= 0 else float("nan"),
-                       d.raw_score if d.candidate >= 0 else float("nan"),
-                       d.accepted, d.timings, extra)
+            _write_decision(writer, d, float(frame.timestamp))
             bar.update(1)
             if config.similarity and (i + 1) % 200 == 0:
                 writer.set_similarity(sim[: i + 1, : i + 1])
@@ -141,21 +108,127 @@ def run_dataset(
         if config.similarity:
             writer.set_similarity(sim)
         detector.close()
-    saved = _match_pictures(dataset, accepted, writer, pictures, config)
+    saved = _match_pictures(dataset, tally.accepted, writer, pictures, config)
     writer.close()
-    return RunSummary(out, len(totals), len(accepted), dict(statuses),
-                      float(np.mean(totals)) if totals else float("nan"), fallbacks, saved)
+    return RunSummary(
+        out,
+        len(tally.totals),
+        len(tally.accepted),
+        dict(tally.statuses),
+        float(np.mean(tally.totals)) if tally.totals else float("nan"),
+        tally.fallbacks,
+        saved,
+    )
+
+
+@dataclass
+class _Tally:
+    """What the summary counts over the processed frames."""
+
+    statuses: Counter[str] = field(default_factory=Counter)
+    accepted: list[LoopDecision] = field(default_factory=list)
+    fallbacks: int = 0
+    totals: list[float] = field(default_factory=list)
+
+    def count(self, d: LoopDecision) -> None:
+        self.statuses[d.status.value] += 1
+        self.fallbacks += int(d.mask_fallback)
+        self.totals.append(d.timings["total"])
+        if d.accepted:
+            self.accepted.append(d)
+
+
+def _remove_database(db_path: Path, *, named: bool) -> None:
+    """Delete a previous run's database (and its SQLite side files) before starting over.
+
+    Raises:
+        DatasetError: the user named the file (``named``): it is never deleted silently.
+    """
+    if named:
+        raise DatasetError(f"{db_path}: database file exists; continue it with --resume or remove it")
+    for suffix in ("", "-wal", "-shm"):
+        Path(str(db_path) + suffix).unlink(missing_ok=True)
+
+
+def _run_meta(
+    config: DetectorConfig, preset_name: str, n: int, meta: dict[str, Any] | None
+) -> dict[str, Any]:
+    """What ``meta.json`` records about the run, ``meta`` last (it wins)."""
+    if config.confidence == "inliers" and config.verification is not None:
+        score_column = "geometric inliers + normalised BoW score"
+    else:
+        score_column = "normalised BoW score"
+    if config.masking is None or config.masking.mode == "none":
+        semantics = "no masking"
+    else:
+        semantics = f"{config.masking.mode} mask from the {config.semantic_source}"
+    return {
+        "preset": preset_name,
+        "frames": n,
+        "exclude": config.query.exclude_recent,
+        "score_column": score_column,
+        "semantics": semantics,
+        **(meta or {}),
+    }
+
+
+def _initial_similarity(config: DetectorConfig, n: int, sim_path: Path, resume: bool) -> np.ndarray:
+    """The (n, n) float32 similarity matrix to fill ((0, 0) when turned off), resumed from the file.
+
+    The matrix takes 4 bytes x n^2: ``config.similarity`` turns it off for very long runs.
+    """
+    sim = np.zeros((n, n) if config.similarity else (0, 0), np.float32)
+    if config.similarity and resume and sim_path.exists():
+        old = np.load(sim_path)
+        k = min(old.shape[0], n)
+        sim[:k, :k] = old[:k, :k]
+    return sim
+
+
+def _write_decision(writer: RunWriter, d: LoopDecision, timestamp: float) -> None:
+    """One row of ``decisions.csv`` and its extras (features, verification) for ``extra.jsonl``."""
+    extra: dict[str, Any] = {
+        "n_features": d.n_features,
+        "n_kept": d.n_kept,
+        "mask_fallback": d.mask_fallback,
+        "consistent": d.consistent,
+        "nss": d.nss_factor,
+    }
+    v = d.verification
+    if v is not None:
+        extra.update(
+            verifier=str(v.method),
+            verification=str(v.status),
+            reason=v.reason,
+            inliers=int(np.count_nonzero(v.inliers)),
+            triangles_agree=v.n_triangles_agree,
+        )
+        if d.relative_pose is not None:
+            extra["relative_pose"] = d.relative_pose.tolist()
+    writer.add(
+        d.frame_index,
+        timestamp,
+        d.status.value,
+        d.candidate_frame,
+        d.confidence if d.candidate >= 0 else float("nan"),
+        d.raw_score if d.candidate >= 0 else float("nan"),
+        d.accepted,
+        d.timings,
+        extra,
+    )
 
 
 def raise_mismatch(out: Path, entries: int, rows: int) -> None:
-    from ..errors import DatasetError
+    """Raise: the run's database and its decisions.csv cover different numbers of frames."""
+    raise DatasetError(
+        f"{out}: the map holds {entries} frames but decisions.csv has {rows}; "
+        "cannot resume this run (start it again without --resume)"
+    )
 
-    raise DatasetError(f"{out}: the map holds {entries} frames but decisions.csv has {rows}; "
-                       "cannot resume this run (start it again without --resume)")
 
-
-def _match_pictures(dataset: Any, accepted: list[LoopDecision], writer: RunWriter, count: int,
-                    config: DetectorConfig) -> list[Path]:
+def _match_pictures(
+    dataset: Any, accepted: list[LoopDecision], writer: RunWriter, count: int, config: DetectorConfig
+) -> list[Path]:
     """Pictures of a few accepted loops (evenly spread), when the drawing module is there."""
     if count <= 0 or not accepted:
         return []

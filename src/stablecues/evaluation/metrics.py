@@ -212,63 +212,18 @@ def evaluate_detections(
     n = gt.shape[0]
     if gt.shape != (n, n):
         raise InputError(f"ground truth: expected a square matrix, got {gt.shape}")
-    if protocol not in PROTOCOLS:
-        raise InputError(f"protocol: expected one of {', '.join(PROTOCOLS)}, got {protocol!r}")
-    tol = 0 if protocol == "exact" else int(tolerance)
-    if tol < 0:
-        raise InputError(f"tolerance: expected >= 0, got {tolerance}")
-    q = np.asarray(queries, dtype=np.int64).ravel()
-    c = np.asarray(candidates, dtype=np.int64).ravel()
-    s = np.asarray(scores, dtype=np.float64).ravel()
-    if not (q.shape == c.shape == s.shape):
-        raise InputError(
-            f"queries, candidates, scores: expected equal lengths, got {q.size}, {c.size}, {s.size}"
-        )
-    if q.size and (q.min() < 0 or q.max() >= n):
-        raise InputError(f"queries: expected frame indices in [0, {n}), got range [{q.min()}, {q.max()}]")
-    if np.unique(q).size != q.size:
-        raise InputError("queries: each frame may be evaluated once, found duplicates")
+    tol = _protocol_tolerance(protocol, tolerance)
+    q, c, s = _check_detections(n, queries, candidates, scores)
     detected = c >= 0
-    if np.any(c < -1) or np.any(c[detected] >= q[detected]):
-        bad = int(np.flatnonzero((c < -1) | (detected & (c >= q)))[0])
-        raise InputError(f"frame {q[bad]}: candidate {c[bad]} is not an earlier frame (or -1 for none)")
-    if not np.isfinite(s[detected]).all():
-        raise InputError("scores: every detection needs a finite score")
     if query_mask is not None:
         check_array("query_mask", query_mask, dtype=bool, shape=(n,))
         keep = query_mask[q]
         q, c, s, detected = q[keep], c[keep], s[keep], detected[keep]
 
     limit = eligible_limit(n, exclude, exclude_s=exclude_s, times=times)
-    has_loop = gt.any(axis=1)
-    first = np.where(has_loop, gt.argmax(axis=1), n)
-    first_eligible = np.where(first <= limit, first, n)  # earliest eligible loop column per row
-
-    if protocol == "tolerance" and tol > 0:
-        # row i is positive iff some row i' within +-tol has an eligible loop j <= limit[i] + tol
-        padded = np.concatenate([np.full(tol, n), first_eligible, np.full(tol, n)])
-        windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * tol + 1)
-        nearest_first = windows.min(axis=1)
-        positive_rows = (limit >= 0) & (nearest_first < n) & (nearest_first <= limit + tol)
-    else:
-        positive_rows = first_eligible < n
-    positives = int(positive_rows[q].sum())
-
+    positives = int(_positive_rows(gt, limit, protocol, tol)[q].sum())
     dq, dc, ds = q[detected], c[detected], s[detected]
-    correct = np.zeros(dq.size, dtype=bool)
-    for k, (i, j) in enumerate(zip(dq.tolist(), dc.tolist(), strict=True)):
-        if j > limit[i]:
-            continue
-        if tol == 0:
-            correct[k] = gt[i, j]
-        elif protocol == "ibow":
-            correct[k] = gt[i, max(0, j - tol) : min(j + tol, int(limit[i])) + 1].any()
-        else:
-            for r in range(max(0, i - tol), min(n, i + tol + 1)):
-                hi = min(j + tol, int(limit[r]))
-                if hi >= max(0, j - tol) and gt[r, max(0, j - tol) : hi + 1].any():
-                    correct[k] = True
-                    break
+    correct = _correct_detections(gt, limit, dq, dc, protocol, tol)
 
     curve = pr_curve(ds, correct, positives)
     r100, t100, tp100 = recall_at_full_precision(curve)
@@ -295,6 +250,91 @@ def evaluate_detections(
         correct=correct,
         detection_frames=dq,
     )
+
+
+def _protocol_tolerance(protocol: str, tolerance: int) -> int:
+    """The tolerance ``n`` the protocol uses (0 for "exact").
+
+    Raises:
+        InputError: an unknown protocol or a negative tolerance.
+    """
+    if protocol not in PROTOCOLS:
+        raise InputError(f"protocol: expected one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+    tol = 0 if protocol == "exact" else int(tolerance)
+    if tol < 0:
+        raise InputError(f"tolerance: expected >= 0, got {tolerance}")
+    return tol
+
+
+def _check_detections(
+    n: int, queries: np.ndarray, candidates: np.ndarray, scores: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Queries, candidates and scores as flat (M,) int64, int64 and float64 arrays, checked.
+
+    Raises:
+        InputError: unequal lengths, a query outside [0, n), duplicate queries, a candidate
+            that is not an earlier frame (or -1), or a non-finite score of a detection.
+    """
+    q = np.asarray(queries, dtype=np.int64).ravel()
+    c = np.asarray(candidates, dtype=np.int64).ravel()
+    s = np.asarray(scores, dtype=np.float64).ravel()
+    if not (q.shape == c.shape == s.shape):
+        raise InputError(
+            f"queries, candidates, scores: expected equal lengths, got {q.size}, {c.size}, {s.size}"
+        )
+    if q.size and (q.min() < 0 or q.max() >= n):
+        raise InputError(f"queries: expected frame indices in [0, {n}), got range [{q.min()}, {q.max()}]")
+    if np.unique(q).size != q.size:
+        raise InputError("queries: each frame may be evaluated once, found duplicates")
+    detected = c >= 0
+    if np.any(c < -1) or np.any(c[detected] >= q[detected]):
+        bad = int(np.flatnonzero((c < -1) | (detected & (c >= q)))[0])
+        raise InputError(f"frame {q[bad]}: candidate {c[bad]} is not an earlier frame (or -1 for none)")
+    if not np.isfinite(s[detected]).all():
+        raise InputError("scores: every detection needs a finite score")
+    return q, c, s
+
+
+def _positive_rows(gt: np.ndarray, limit: np.ndarray, protocol: str, tol: int) -> np.ndarray:
+    """(N,) bool: the frames that are positive queries under the protocol (module docstring)."""
+    n = gt.shape[0]
+    has_loop = gt.any(axis=1)
+    first = np.where(has_loop, gt.argmax(axis=1), n)
+    first_eligible = np.where(first <= limit, first, n)  # earliest eligible loop column per row
+    if protocol == "tolerance" and tol > 0:
+        # row i is positive iff some row i' within +-tol has an eligible loop j <= limit[i] + tol
+        padded = np.concatenate([np.full(tol, n), first_eligible, np.full(tol, n)])
+        windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * tol + 1)
+        nearest_first = windows.min(axis=1)
+        return (limit >= 0) & (nearest_first < n) & (nearest_first <= limit + tol)
+    return first_eligible < n
+
+
+def _correct_detections(
+    gt: np.ndarray, limit: np.ndarray, dq: np.ndarray, dc: np.ndarray, protocol: str, tol: int
+) -> np.ndarray:
+    """(M,) bool: whether detection ``(dq[k], dc[k])`` is correct under the protocol."""
+    correct = np.zeros(dq.size, dtype=bool)
+    for k, (i, j) in enumerate(zip(dq.tolist(), dc.tolist(), strict=True)):
+        if j > limit[i]:
+            continue
+        if tol == 0:
+            correct[k] = gt[i, j]
+        elif protocol == "ibow":
+            correct[k] = gt[i, max(0, j - tol) : min(j + tol, int(limit[i])) + 1].any()
+        else:
+            correct[k] = _near_widened_loop(gt, limit, i, j, tol)
+    return correct
+
+
+def _near_widened_loop(gt: np.ndarray, limit: np.ndarray, i: int, j: int, tol: int) -> bool:
+    """Whether some eligible loop ``(r, j')`` has ``|r - i| <= tol`` and ``|j' - j| <= tol``."""
+    n = gt.shape[0]
+    for r in range(max(0, i - tol), min(n, i + tol + 1)):
+        hi = min(j + tol, int(limit[r]))
+        if hi >= max(0, j - tol) and gt[r, max(0, j - tol) : hi + 1].any():
+            return True
+    return False
 
 
 def pr_curve(scores: np.ndarray, correct: np.ndarray, positives: int) -> PRCurve:

@@ -142,8 +142,18 @@ def build_report(
         "R@100P: recall at 100 % precision, swept over every distinct score. AUC: step-wise area under "
         "the precision-recall curve. Counts at the detector's own decisions.</p>",
     ]
+    parts += _summary_section(runs, docs)
+    parts += _pr_section(runs, docs)
+    for run, doc in zip(runs, docs, strict=True):
+        parts += _run_section(run, doc, gt_cache, max_matches)
+    parts.append("</body></html>")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text("\n".join(parts), encoding="utf-8")
+    return out_path
 
-    # summary ----------------------------------------------------------------------------------
+
+def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
+    """The summary table: one row per run, its evaluation's counts, R@100P, AUC and speed."""
     rows = []
     for run, doc in zip(runs, docs, strict=True):
         total = (run.timings().get("total") or {}).get("mean")
@@ -171,9 +181,11 @@ def build_report(
         )
     header = ["run", "preset", "protocol", "tol", "excl", "ground truth (sha256)", "queries", "positives"]
     header += ["TP", "FP", "FN", "R@100P", "AUC", "ms/frame"]
-    parts += ["<h2>Summary</h2>", _table(header, rows, left=3)]
+    return ["<h2>Summary</h2>", _table(header, rows, left=3)]
 
-    # PR curves ----------------------------------------------------------------------------------
+
+def _pr_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
+    """The precision-recall curves of every evaluated run on one plot."""
     curves = [
         (
             f"{run.name} (R@100P {100 * doc['recall_at_100p']:.1f} %, AUC {doc['auc']:.3f})",
@@ -183,63 +195,71 @@ def build_report(
         for run, doc in zip(runs, docs, strict=True)
         if doc is not None and "pr_curve" in doc
     ]
-    parts.append("<h2>Precision-recall</h2>")
+    parts = ["<h2>Precision-recall</h2>"]
     if curves:
         fig, (ax,) = new_figure(7.0, 5.0)
         plot_pr_curves(ax, curves)
         parts.append(_img_tag(figure_png(fig), "precision-recall curves"))
     else:
         parts.append("<p class='note'>No run has been evaluated: run <code>stablecues eval</code> first.</p>")
+    return parts
 
-    # per run ------------------------------------------------------------------------------------
-    for run, doc in zip(runs, docs, strict=True):
-        parts.append(f"<h2>Run {html.escape(run.name)}</h2>")
-        meta: list[list[Any]] = [
-            ["dataset", run.meta.get("dataset")],
-            ["format", run.meta.get("format")],
-            ["preset", run.meta.get("preset")],
-            ["frames", len(run)],
-            ["complete", "yes" if run.complete else "no (interrupted)"],
-        ]
-        for key in ("semantics", "score_column"):  # recorded by stablecues run / demo
-            if run.meta.get(key):
-                meta.append([key.replace("_", " "), run.meta[key]])
-        parts.append(_table(["", ""], meta, left=2))
-        parts.append(_matrices_section(run, doc, gt_cache))
-        timing = run.timings()
-        trows = [
-            [k, v.get("mean"), v.get("std"), v.get("min"), v.get("max"), v.get("count")]
-            for k, v in timing.items()
-        ]
-        parts += [
-            "<h3>Time per stage (ms)</h3>",
-            _table(["stage", "mean", "std", "min", "max", "frames"], trows),
-        ]
-        counts = run.status_counts()
-        if counts:
-            parts.append("<h3>Decisions per status</h3>")
-            parts.append(
-                "<p class='note'>The stage that decided each frame: how many frames each stage rejected.</p>"
-            )
-            parts.append(
-                _table(["status", "frames", "share"], [[k, v, v / len(run)] for k, v in counts.items()])
-            )
-            fig, (ax,) = new_figure(5.5, 0.4 + 0.3 * len(counts))
-            plot_status_counts(ax, counts)
-            parts.append(_img_tag(figure_png(fig), "status counts"))
-        pictures = run.matches[:max_matches]
-        if pictures:
-            parts.append(
-                f"<h3>Match pictures ({len(pictures)} of {len(run.matches)})</h3><div class='matches'>"
-            )
-            for p in pictures:
-                caption = f"<figcaption>{html.escape(p.stem)}</figcaption>"
-                parts.append(f"<figure>{_img_tag(p.read_bytes(), p.stem)}{caption}</figure>")
-            parts.append("</div>")
-    parts.append("</body></html>")
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text("\n".join(parts), encoding="utf-8")
-    return out_path
+
+def _run_section(
+    run: Run, doc: dict[str, Any] | None, gt_cache: dict[tuple[str, str], GroundTruth], max_matches: int
+) -> list[str]:
+    """One run: what was run, similarity and ground truth, stage times, statuses, match pictures."""
+    meta: list[list[Any]] = [
+        ["dataset", run.meta.get("dataset")],
+        ["format", run.meta.get("format")],
+        ["preset", run.meta.get("preset")],
+        ["frames", len(run)],
+        ["complete", "yes" if run.complete else "no (interrupted)"],
+    ]
+    for key in ("semantics", "score_column"):  # recorded by stablecues run / demo
+        if run.meta.get(key):
+            meta.append([key.replace("_", " "), run.meta[key]])
+    trows = [
+        [k, v.get("mean"), v.get("std"), v.get("min"), v.get("max"), v.get("count")]
+        for k, v in run.timings().items()
+    ]
+    return [
+        f"<h2>Run {html.escape(run.name)}</h2>",
+        _table(["", ""], meta, left=2),
+        _matrices_section(run, doc, gt_cache),
+        "<h3>Time per stage (ms)</h3>",
+        _table(["stage", "mean", "std", "min", "max", "frames"], trows),
+        *_status_section(run),
+        *_matches_section(run, max_matches),
+    ]
+
+
+def _status_section(run: Run) -> list[str]:
+    """How many frames ended in each status, as a table and a bar plot (nothing for an empty run)."""
+    counts = run.status_counts()
+    if not counts:
+        return []
+    fig, (ax,) = new_figure(5.5, 0.4 + 0.3 * len(counts))
+    plot_status_counts(ax, counts)
+    return [
+        "<h3>Decisions per status</h3>",
+        "<p class='note'>The stage that decided each frame: how many frames each stage rejected.</p>",
+        _table(["status", "frames", "share"], [[k, v, v / len(run)] for k, v in counts.items()]),
+        _img_tag(figure_png(fig), "status counts"),
+    ]
+
+
+def _matches_section(run: Run, max_matches: int) -> list[str]:
+    """Up to ``max_matches`` of the run's match pictures, with their names as captions."""
+    pictures = run.matches[:max_matches]
+    if not pictures:
+        return []
+    parts = [f"<h3>Match pictures ({len(pictures)} of {len(run.matches)})</h3><div class='matches'>"]
+    for p in pictures:
+        caption = f"<figcaption>{html.escape(p.stem)}</figcaption>"
+        parts.append(f"<figure>{_img_tag(p.read_bytes(), p.stem)}{caption}</figure>")
+    parts.append("</div>")
+    return parts
 
 
 def _matrices_section(run: Run, doc: dict[str, Any] | None, cache: dict[tuple[str, str], GroundTruth]) -> str:

@@ -36,6 +36,7 @@ def _names_file(loader: _F) -> _F:
 
     return wrapper  # type: ignore[return-value]
 
+
 __all__ = [
     "TUM_CAMERAS",
     "load_calibration",

@@ -214,6 +214,100 @@ def _refine(
     return rotation, translation
 
 
+_GATE = float(np.sqrt(5.991))  # 95 % chi-square gate of 2 DOF, in sigmas
+
+
+def _ransac_pnp(
+    obj: np.ndarray, img: np.ndarray, camera: PinholeCamera, config: PnPConfig, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``cv2.solvePnPRansac`` (AP3P) on finite correspondences, seeded.
+
+    Args:
+        obj: (K, 3) float64 candidate points.
+        img: (K, 2) float64 query pixels.
+
+    Returns:
+        ``(rotation, translation, inliers)``: (3, 3) and (3,) float64 and a (K,) bool mask,
+        or None when RANSAC finds fewer than 4 inliers.
+
+    Raises:
+        InputError: OpenCV's solver threw on a degenerate configuration.
+    """
+    cv2.setRNGSeed(seed)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj,
+            img,
+            camera.K,
+            camera.dist,
+            iterationsCount=config.iterations,
+            reprojectionError=config.reprojection_px,
+            confidence=config.confidence,
+            flags=cv2.SOLVEPNP_AP3P,
+        )
+    except cv2.error as exc:  # degenerate configurations make some solvers throw
+        raise InputError(f"PnP failed: {exc}".splitlines()[0]) from None
+    if not ok or inl is None or len(inl) < 4:
+        return None
+    inliers = np.zeros(obj.shape[0], bool)
+    inliers[inl.ravel()] = True
+    return cv2.Rodrigues(rvec)[0], np.asarray(tvec, np.float64).reshape(3), inliers
+
+
+def _reverse_term(
+    points_query: np.ndarray | None,
+    pixels_candidate: np.ndarray | None,
+    sigma_candidate: np.ndarray | None,
+    camera: PinholeCamera,
+    m: int,
+) -> tuple[_Term, np.ndarray]:
+    """The reverse reprojection term (query points into the candidate image) of the finite rows.
+
+    Returns:
+        The term and the (K,) int64 indices of the matches it holds.
+
+    Raises:
+        InputError: ``points_query`` not (m, 3) or ``pixels_candidate`` not (m, 2).
+    """
+    pq = np.asarray(points_query, np.float64)
+    pc = np.asarray(pixels_candidate, np.float64)
+    check_array("points_query", pq, shape=(m, 3))
+    check_array("pixels_candidate", pc, shape=(m, 2))
+    sc = np.ones(m) if sigma_candidate is None else np.asarray(sigma_candidate, np.float64)
+    ridx = np.flatnonzero(np.isfinite(pq).all(axis=1) & np.isfinite(pc).all(axis=1))
+    focal = np.array([camera.fx, camera.fy])
+    term = _Term(pq[ridx], camera.normalize(pc[ridx]), focal[None, :] / sc[ridx, None], forward=False)
+    return term, ridx
+
+
+def _refine_and_reselect(
+    terms: list[_Term], masks: list[np.ndarray], rotation: np.ndarray, translation: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Refine on the inliers, re-select them with the gate, refine again (at most twice).
+
+    Args:
+        terms: the forward term, then the reverse term when both frames have 3D.
+        masks: the starting inliers of each term.
+        rotation, translation: the starting pose.
+
+    Returns:
+        The refined pose and the inlier mask of each term.
+    """
+    for _ in range(2):  # refine on the RANSAC inliers, re-select, refine on those
+        if sum(int(mk.sum()) for mk in masks) < 4:
+            break
+        selected = [t.select(mk) for t, mk in zip(terms, masks, strict=True)]
+        rotation, translation = _refine(selected, rotation, translation, _GATE, iterations=3)
+        new = [np.linalg.norm(t.residuals(rotation, translation), axis=1) <= _GATE for t in terms]
+        if new[0].sum() < 4:
+            break
+        unchanged = all(np.array_equal(a, b) for a, b in zip(new, masks, strict=True))
+        masks = new
+        if unchanged:
+            break
+    return rotation, translation, masks
+
+
 def estimate_pose_pnp(
     points_candidate: np.ndarray,
     pixels_query: np.ndarray,
@@ -272,56 +366,21 @@ def estimate_pose_pnp(
         return PoseEstimate.failed(m)
     obj = np.ascontiguousarray(points_candidate[idx], np.float64)
     img = np.ascontiguousarray(pixels_query[idx], np.float64)
-    cv2.setRNGSeed(seed)
-    try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj,
-            img,
-            camera.K,
-            camera.dist,
-            iterationsCount=config.iterations,
-            reprojectionError=config.reprojection_px,
-            confidence=config.confidence,
-            flags=cv2.SOLVEPNP_AP3P,
-        )
-    except cv2.error as exc:  # degenerate configurations make some solvers throw
-        raise InputError(f"PnP failed: {exc}".splitlines()[0]) from None
-    if not ok or inl is None or len(inl) < 4:
+    found = _ransac_pnp(obj, img, camera, config, seed)
+    if found is None:
         return PoseEstimate.failed(m)
-    rotation = cv2.Rodrigues(rvec)[0]
-    translation = np.asarray(tvec, np.float64).reshape(3)
+    rotation, translation, inliers = found
     focal = np.array([camera.fx, camera.fy])
     fwd = _Term(obj, camera.normalize(img), focal[None, :] / sq[idx, None], forward=True)
-    inliers = np.zeros(idx.size, bool)
-    inliers[inl.ravel()] = True
-    gate = float(np.sqrt(5.991))
     if config.refine:
         terms = [fwd]
         masks = [inliers]
         if symmetric:
-            pq = np.asarray(points_query, np.float64)
-            pc = np.asarray(pixels_candidate, np.float64)
-            check_array("points_query", pq, shape=(m, 3))
-            check_array("pixels_candidate", pc, shape=(m, 2))
-            sc = np.ones(m) if sigma_candidate is None else np.asarray(sigma_candidate, np.float64)
-            rev_ok = np.isfinite(pq).all(axis=1) & np.isfinite(pc).all(axis=1)
-            ridx = np.flatnonzero(rev_ok)
-            rev = _Term(pq[ridx], camera.normalize(pc[ridx]), focal[None, :] / sc[ridx, None], forward=False)
+            rev, ridx = _reverse_term(points_query, pixels_candidate, sigma_candidate, camera, m)
             # the reverse term starts from the RANSAC inliers that also have a query point
             terms.append(rev)
             masks.append(np.isin(ridx, idx[inliers]))
-        for _ in range(2):  # refine on the RANSAC inliers, re-select, refine on those
-            if sum(int(mk.sum()) for mk in masks) < 4:
-                break
-            selected = [t.select(mk) for t, mk in zip(terms, masks, strict=True)]
-            rotation, translation = _refine(selected, rotation, translation, gate, iterations=3)
-            new = [np.linalg.norm(t.residuals(rotation, translation), axis=1) <= gate for t in terms]
-            if new[0].sum() < 4:
-                break
-            unchanged = all(np.array_equal(a, b) for a, b in zip(new, masks, strict=True))
-            masks = new
-            if unchanged:
-                break
+        rotation, translation, masks = _refine_and_reselect(terms, masks, rotation, translation)
         inliers = masks[0]
     r = fwd.residuals(rotation, translation) * sq[idx, None]  # back to (undistorted) pixels
     err = np.linalg.norm(r, axis=1)

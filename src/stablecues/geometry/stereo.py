@@ -190,6 +190,103 @@ def _scan(
     return score, (pnorm / math.sqrt(area)).astype(np.float32)
 
 
+def _coarse_search(
+    left_f: np.ndarray,
+    right_f: np.ndarray,
+    keypoints: np.ndarray,
+    inside: np.ndarray,
+    d_lo: int,
+    d_hi: int,
+    config: StereoConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integer disparities at half resolution, left-right checked, for the coarse-to-fine search.
+
+    Args:
+        left_f, right_f: (H, W) float32 rectified images.
+        keypoints: (N, 2) pixel coordinates (x, y) in the left image.
+        inside: (N,) bool keypoints whose full-resolution patch fits.
+        d_lo, d_hi: integer disparity range at full resolution.
+        config: matching settings.
+
+    Returns:
+        ``(idx, d_centre)``: (K,) int64 indices of the keypoints that passed and (K,) int64
+        their full-resolution disparity (twice the coarse one).
+    """
+    rc = config.coarse_patch_radius
+    left_c = cv2.pyrDown(left_f)
+    right_c = cv2.pyrDown(right_f)
+    hc, wc = left_c.shape
+    xc = np.rint(keypoints[:, 0] / 2.0).astype(np.int64)
+    yc = np.rint(keypoints[:, 1] / 2.0).astype(np.int64)
+    idx = np.flatnonzero(inside & (xc >= rc) & (xc < wc - rc) & (yc >= rc) & (yc < hc - rc))
+    dc_lo, dc_hi = d_lo // 2, -(-d_hi // 2)
+    count_c = dc_hi - dc_lo + 1
+    xi, yi = xc[idx], yc[idx]
+    # candidates at x - dc_hi + j: disparity dc_hi - j
+    sc, _ = _scan(left_c, right_c, _window_std(right_c, rc), xi, yi, xi - dc_hi, count_c, rc)
+    jbest = np.argmax(sc, axis=1)
+    ok = np.isfinite(sc[np.arange(idx.size), jbest])
+    dc = dc_hi - jbest
+    # left-right check: right patch at x - dc searched along the left row, x_r + dc_lo + j
+    xr = xi - dc
+    ok &= (xr >= rc) & (xr < wc - rc)
+    idx, xi, yi, dc, xr = idx[ok], xi[ok], yi[ok], dc[ok], xr[ok]
+    sb, _ = _scan(right_c, left_c, _window_std(left_c, rc), xr, yi, xr + dc_lo, count_c, rc)
+    back = dc_lo + np.argmax(sb, axis=1)
+    ok = np.abs(back - dc) <= config.lr_tolerance
+    return idx[ok], 2 * dc[ok]
+
+
+def _left_right_check(
+    left_f: np.ndarray,
+    right_f: np.ndarray,
+    xf: np.ndarray,
+    yf: np.ndarray,
+    d_int: np.ndarray,
+    d_lo: int,
+    d_hi: int,
+    config: StereoConfig,
+) -> np.ndarray:
+    """(K,) bool: searching back from the right patch at ``xf - d_int`` finds ``d_int`` again.
+
+    The back search covers the whole range [d_lo, d_hi] at full resolution and accepts a
+    difference of up to ``2 * config.lr_tolerance`` pixels; a right patch that does not fit in
+    the image fails.
+    """
+    r = config.patch_radius
+    width = left_f.shape[1]
+    xr = xf - d_int
+    okr = (xr >= r) & (xr < width - r)
+    back = np.full(xf.size, -(10**9), np.int64)
+    if okr.any():
+        sb, _ = _scan(
+            right_f, left_f, _window_std(left_f, r), xr[okr], yf[okr], xr[okr] + d_lo, d_hi - d_lo + 1, r
+        )
+        back[okr] = d_lo + np.argmax(sb, axis=1)
+    return np.abs(back - d_int) <= 2 * config.lr_tolerance
+
+
+def _parabola_peak(scores: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best inner candidate of each row and its sub-pixel offset from a parabola through 3 scores.
+
+    Args:
+        scores: (K, C) float32 scores of C candidates per keypoint (C >= 3).
+
+    Returns:
+        ``(j, s0, offset)``: (K,) int64 column of the best inner candidate, (K,) its score and
+        (K,) float64 offset in [-0.5, 0.5] towards the higher neighbour (0 without a peak).
+    """
+    j = 1 + np.argmax(scores[:, 1:-1], axis=1)
+    rows = np.arange(scores.shape[0])
+    s0 = scores[rows, j]
+    sm = scores[rows, j - 1]
+    sp = scores[rows, j + 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        denom = sm - 2.0 * s0 + sp
+        offset = np.where(np.isfinite(denom) & (denom < 0), 0.5 * (sm - sp) / denom, 0.0)
+    return j, s0, np.clip(offset, -0.5, 0.5)
+
+
 def stereo_disparities(
     left: np.ndarray,
     right: np.ndarray,
@@ -235,30 +332,7 @@ def stereo_disparities(
     d_lo = int(math.floor(min_disparity))
     d_hi = int(math.ceil(max_disparity))
     if config.coarse_to_fine:
-        rc = config.coarse_patch_radius
-        left_c = cv2.pyrDown(left_f)
-        right_c = cv2.pyrDown(right_f)
-        hc, wc = left_c.shape
-        xc = np.rint(keypoints[:, 0] / 2.0).astype(np.int64)
-        yc = np.rint(keypoints[:, 1] / 2.0).astype(np.int64)
-        inside &= (xc >= rc) & (xc < wc - rc) & (yc >= rc) & (yc < hc - rc)
-        idx = np.flatnonzero(inside)
-        dc_lo, dc_hi = d_lo // 2, -(-d_hi // 2)
-        count_c = dc_hi - dc_lo + 1
-        xi, yi = xc[idx], yc[idx]
-        # candidates at x - dc_hi + j: disparity dc_hi - j
-        sc, _ = _scan(left_c, right_c, _window_std(right_c, rc), xi, yi, xi - dc_hi, count_c, rc)
-        jbest = np.argmax(sc, axis=1)
-        ok = np.isfinite(sc[np.arange(idx.size), jbest])
-        dc = dc_hi - jbest
-        # left-right check: right patch at x - dc searched along the left row, x_r + dc_lo + j
-        xr = xi - dc
-        ok &= (xr >= rc) & (xr < wc - rc)
-        idx, xi, yi, dc, xr = idx[ok], xi[ok], yi[ok], dc[ok], xr[ok]
-        sb, _ = _scan(right_c, left_c, _window_std(left_c, rc), xr, yi, xr + dc_lo, count_c, rc)
-        back = dc_lo + np.argmax(sb, axis=1)
-        ok = np.abs(back - dc) <= config.lr_tolerance
-        idx, d_centre = idx[ok], 2 * dc[ok]
+        idx, d_centre = _coarse_search(left_f, right_f, keypoints, inside, d_lo, d_hi, config)
         half = 3  # fine search d_centre-2..d_centre+2, plus one neighbour each side for the parabola
     else:
         idx = np.flatnonzero(inside)
@@ -271,29 +345,11 @@ def stereo_disparities(
     sf, texture = _scan(left_f, right_f, None, xf, yf, xf - (d_centre + half), count_f, r)
     if not config.coarse_to_fine and idx.size:
         # left-right check at full resolution for the exhaustive search
-        jb = np.argmax(sf, axis=1)
-        d_int = d_centre + half - jb
-        xr = xf - d_int
-        okr = (xr >= r) & (xr < width - r)
-        back = np.full(idx.size, -(10**9), np.int64)
-        if okr.any():
-            sb, _ = _scan(
-                right_f, left_f, _window_std(left_f, r), xr[okr], yf[okr], xr[okr] + d_lo, d_hi - d_lo + 1, r
-            )
-            back[okr] = d_lo + np.argmax(sb, axis=1)
-        lr_ok = np.abs(back - d_int) <= 2 * config.lr_tolerance
+        d_int = d_centre + half - np.argmax(sf, axis=1)
+        lr_ok = _left_right_check(left_f, right_f, xf, yf, d_int, d_lo, d_hi, config)
     else:
         lr_ok = np.ones(idx.size, bool)
-    inner = sf[:, 1:-1]
-    j = 1 + np.argmax(inner, axis=1)
-    rows = np.arange(idx.size)
-    s0 = sf[rows, j]
-    sm = sf[rows, j - 1]
-    sp = sf[rows, j + 1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        denom = sm - 2.0 * s0 + sp
-        offset = np.where(np.isfinite(denom) & (denom < 0), 0.5 * (sm - sp) / denom, 0.0)
-    offset = np.clip(offset, -0.5, 0.5)
+    j, s0, offset = _parabola_peak(sf)
     d_sub = (d_centre + half - j).astype(np.float64) - offset
     good = (
         lr_ok

@@ -187,6 +187,74 @@ def _min_angle_deg(p: list[float], q: list[float], r: list[float]) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_small))))
 
 
+@dataclass(frozen=True)
+class _Vertices:
+    """The usable points of one frame as Python lists (fast scalar access in the search loop)."""
+
+    xyz: list[list[float]]
+    sigmas: list[tuple[float, float]]  # (sigma_depth, sigma_lateral) per point
+
+    @staticmethod
+    def of(points: Points3D, usable: np.ndarray) -> _Vertices:
+        sigmas = zip(points.sigma_depth[usable].tolist(), points.sigma_lateral[usable].tolist(), strict=True)
+        return _Vertices(points.xyz[usable].tolist(), list(sigmas))
+
+    def side(self, a: int, b: int) -> tuple[float, float]:
+        """Length and first-order sigma of the side between points a and b."""
+        return _side(self.xyz[a], self.xyz[b], self.sigmas[a], self.sigmas[b])
+
+    def min_angle_deg(self, a: int, b: int, c: int) -> float:
+        """Smallest interior angle of the triangle of points a, b, c in degrees."""
+        return _min_angle_deg(self.xyz[a], self.xyz[b], self.xyz[c])
+
+
+def _skip_reason(k: int, current: list[int], q: _Vertices, c: _Vertices, config: TriangleConfig) -> str:
+    """Why usable match ``k`` cannot join the triangle being built ("too_close", "collinear"), or ""."""
+    for e in current:
+        lq, sq = q.side(k, e)
+        lc, sc = c.side(k, e)
+        if (
+            min(lq, lc) <= config.min_side
+            or lq < config.min_side_sigma * sq
+            or lc < config.min_side_sigma * sc
+        ):
+            return "too_close"
+    if len(current) == 2:
+        a, b = current
+        if q.min_angle_deg(a, b, k) < config.min_angle_deg or c.min_angle_deg(a, b, k) < config.min_angle_deg:
+            return "collinear"
+    return ""
+
+
+def _compare(
+    current: list[int], pos: list[int], q: _Vertices, c: _Vertices, config: TriangleConfig
+) -> Triangle:
+    """The triangle of usable matches ``current`` measured in both frames, its sides compared."""
+    sides_q: list[float] = []
+    sides_c: list[float] = []
+    allowed: list[float] = []
+    agree = True
+    for a, b in ((current[0], current[1]), (current[1], current[2]), (current[2], current[0])):
+        lq, sq = q.side(a, b)
+        lc, sc = c.side(a, b)
+        tol = (
+            config.k_sigma * math.sqrt(sq * sq + sc * sc)
+            if config.tolerance == "noise"
+            else config.relative_tolerance * 0.5 * (lq + lc)
+        )
+        sides_q.append(lq)
+        sides_c.append(lc)
+        allowed.append(tol)
+        agree = agree and abs(lq - lc) <= tol
+    return Triangle(
+        matches=(pos[current[0]], pos[current[1]], pos[current[2]]),
+        sides_query=(sides_q[0], sides_q[1], sides_q[2]),
+        sides_candidate=(sides_c[0], sides_c[1], sides_c[2]),
+        allowed=(allowed[0], allowed[1], allowed[2]),
+        agree=agree,
+    )
+
+
 def check_triangles(
     query: Points3D, candidate: Points3D, config: TriangleConfig = TriangleConfig()
 ) -> TriangleCheck:
@@ -205,14 +273,9 @@ def check_triangles(
             f"triangle check: expected equal numbers of points, got {len(query)} and {len(candidate)}"
         )
     usable = np.flatnonzero(query.valid & candidate.valid)
-    qx = query.xyz[usable].tolist()
-    cx = candidate.xyz[usable].tolist()
-    qs = list(zip(query.sigma_depth[usable].tolist(), query.sigma_lateral[usable].tolist(), strict=True))
-    cs = list(
-        zip(candidate.sigma_depth[usable].tolist(), candidate.sigma_lateral[usable].tolist(), strict=True)
-    )
+    q = _Vertices.of(query, usable)
+    c = _Vertices.of(candidate, usable)
     pos = usable.tolist()
-    noise_mode = config.tolerance == "noise"
 
     triangles: list[Triangle] = []
     skipped: list[tuple[int, str]] = []
@@ -220,55 +283,14 @@ def check_triangles(
     for k in range(len(pos)):
         if len(triangles) >= config.n_triangles:
             break
-        reason = ""
-        for e in current:
-            lq, sq = _side(qx[k], qx[e], qs[k], qs[e])
-            lc, sc = _side(cx[k], cx[e], cs[k], cs[e])
-            if (
-                min(lq, lc) <= config.min_side
-                or lq < config.min_side_sigma * sq
-                or lc < config.min_side_sigma * sc
-            ):
-                reason = "too_close"
-                break
-        if not reason and len(current) == 2:
-            a, b = current
-            if (
-                _min_angle_deg(qx[a], qx[b], qx[k]) < config.min_angle_deg
-                or _min_angle_deg(cx[a], cx[b], cx[k]) < config.min_angle_deg
-            ):
-                reason = "collinear"
+        reason = _skip_reason(k, current, q, c, config)
         if reason:
             skipped.append((pos[k], reason))
             continue
         current.append(k)
         if len(current) < 3:
             continue
-        sides_q: list[float] = []
-        sides_c: list[float] = []
-        allowed: list[float] = []
-        agree = True
-        for a, b in ((current[0], current[1]), (current[1], current[2]), (current[2], current[0])):
-            lq, sq = _side(qx[a], qx[b], qs[a], qs[b])
-            lc, sc = _side(cx[a], cx[b], cs[a], cs[b])
-            tol = (
-                config.k_sigma * math.sqrt(sq * sq + sc * sc)
-                if noise_mode
-                else config.relative_tolerance * 0.5 * (lq + lc)
-            )
-            sides_q.append(lq)
-            sides_c.append(lc)
-            allowed.append(tol)
-            agree = agree and abs(lq - lc) <= tol
-        triangles.append(
-            Triangle(
-                matches=(pos[current[0]], pos[current[1]], pos[current[2]]),
-                sides_query=(sides_q[0], sides_q[1], sides_q[2]),
-                sides_candidate=(sides_c[0], sides_c[1], sides_c[2]),
-                allowed=(allowed[0], allowed[1], allowed[2]),
-                agree=agree,
-            )
-        )
+        triangles.append(_compare(current, pos, q, c, config))
         current = []
     return TriangleCheck(
         triangles=tuple(triangles),

@@ -36,7 +36,7 @@ import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -491,6 +491,45 @@ def load_run(path: str | Path) -> Run:
     config = read_json(root / CONFIG, "run configuration")
     meta = read_json(root / META, "run metadata")
     decisions = root / DECISIONS
+    lines, truncated = _decision_lines(decisions)
+    stages = _stage_columns(decisions, lines[0])
+    rows = _parse_rows(decisions, lines[1:], len(BASE_COLUMNS) + len(stages))
+    _check_frame_order(decisions, rows.frames, rows.candidates)
+    return Run(
+        path=root,
+        config=config,
+        meta=meta,
+        frames=rows.frames,
+        timestamps=rows.timestamps,
+        status=rows.status,
+        candidates=rows.candidates,
+        scores=rows.scores,
+        raw_scores=rows.raw_scores,
+        accepted=rows.accepted,
+        stage_ms={s: rows.stage_ms[i] for i, s in enumerate(stages)},
+        truncated=truncated,
+    )
+
+
+class _Rows(NamedTuple):
+    """The columns of ``decisions.csv``'s rows (see :class:`Run`); stage_ms is (S, M)."""
+
+    frames: np.ndarray
+    timestamps: np.ndarray
+    status: np.ndarray
+    candidates: np.ndarray
+    scores: np.ndarray
+    raw_scores: np.ndarray
+    accepted: np.ndarray
+    stage_ms: np.ndarray
+
+
+def _decision_lines(decisions: Path) -> tuple[list[str], bool]:
+    """The non-blank lines of ``decisions.csv`` (header first) and whether a partial last line was dropped.
+
+    Raises:
+        DatasetError: the file is missing or holds no header.
+    """
     if not decisions.is_file():
         raise DatasetError(f"{decisions}: per-frame decisions not found")
     text = decisions.read_text(encoding="utf-8")
@@ -502,10 +541,19 @@ def load_run(path: str | Path) -> Run:
     lines = [ln for ln in lines if ln.strip()]
     if not lines:
         raise DatasetError(f"{decisions}: expected a header line, found an empty file")
-    header = next(csv.reader([lines[0]]))
+    return lines, truncated
+
+
+def _stage_columns(decisions: Path, header_line: str) -> list[str]:
+    """The stage names of the header's ``t_<stage>_ms`` columns, after the base columns.
+
+    Raises:
+        DatasetError: a header not starting with the base columns, or another column name.
+    """
+    header = next(csv.reader([header_line]))
     if tuple(header[: len(BASE_COLUMNS)]) != BASE_COLUMNS:
         raise DatasetError(
-            f"{decisions}: expected the header to start {','.join(BASE_COLUMNS)}, found {lines[0][:80]}"
+            f"{decisions}: expected the header to start {','.join(BASE_COLUMNS)}, found {header_line[:80]}"
         )
     stages = []
     for col in header[len(BASE_COLUMNS) :]:
@@ -513,34 +561,53 @@ def load_run(path: str | Path) -> Run:
         if not m:
             raise DatasetError(f"{decisions}: expected timing columns named t_<stage>_ms, found {col!r}")
         stages.append(m.group(1))
-    width = len(header)
-    m_rows = len(lines) - 1
-    frames = np.empty(m_rows, np.int64)
-    times = np.empty(m_rows, np.float64)
-    status = np.empty(m_rows, dtype=object)
-    cands = np.empty(m_rows, np.int64)
-    scores = np.empty(m_rows, np.float64)
-    raw = np.empty(m_rows, np.float64)
-    acc = np.empty(m_rows, bool)
-    stage_vals = np.empty((len(stages), m_rows), np.float64)
-    for k, line in enumerate(lines[1:]):
+    return stages
+
+
+def _parse_rows(decisions: Path, lines: list[str], width: int) -> _Rows:
+    """Parse the data lines (line ``k`` of ``lines`` is line ``k + 2`` of the file).
+
+    Raises:
+        DatasetError: a line without ``width`` fields or with a malformed value.
+    """
+    m_rows = len(lines)
+    rows = _Rows(
+        frames=np.empty(m_rows, np.int64),
+        timestamps=np.empty(m_rows, np.float64),
+        status=np.empty(m_rows, dtype=object),
+        candidates=np.empty(m_rows, np.int64),
+        scores=np.empty(m_rows, np.float64),
+        raw_scores=np.empty(m_rows, np.float64),
+        accepted=np.empty(m_rows, bool),
+        stage_ms=np.empty((width - len(BASE_COLUMNS), m_rows), np.float64),
+    )
+    for k, line in enumerate(lines):
         parts = line.split(",")
         if len(parts) != width:
             raise DatasetError(f"{decisions}: line {k + 2} has {len(parts)} fields, expected {width}")
         try:
-            frames[k] = int(parts[0])
-            times[k] = float(parts[1])
-            status[k] = parts[2]
-            cands[k] = int(parts[3])
-            scores[k] = float(parts[4])
-            raw[k] = float(parts[5])
+            rows.frames[k] = int(parts[0])
+            rows.timestamps[k] = float(parts[1])
+            rows.status[k] = parts[2]
+            rows.candidates[k] = int(parts[3])
+            rows.scores[k] = float(parts[4])
+            rows.raw_scores[k] = float(parts[5])
             if parts[6] not in ("0", "1"):
                 raise ValueError(parts[6])
-            acc[k] = parts[6] == "1"
-            stage_vals[:, k] = [float(v) for v in parts[7:]]
+            rows.accepted[k] = parts[6] == "1"
+            rows.stage_ms[:, k] = [float(v) for v in parts[7:]]
         except ValueError as exc:
             raise DatasetError(f"{decisions}: line {k + 2} has a malformed value ({exc})") from None
-    if m_rows > 1 and np.any(np.diff(frames) <= 0):
+    return rows
+
+
+def _check_frame_order(decisions: Path, frames: np.ndarray, cands: np.ndarray) -> None:
+    """Raise unless frames strictly increase and every candidate is an earlier frame (or -1).
+
+    Raises:
+        DatasetError: naming the first offending line.
+    """
+    if frames.size > 1 and np.any(np.diff(frames) <= 0):
         k = int(np.flatnonzero(np.diff(frames) <= 0)[0])
         raise DatasetError(
             f"{decisions}: frames must increase, line {k + 3} has frame {frames[k + 1]} after {frames[k]}"
@@ -551,20 +618,6 @@ def load_run(path: str | Path) -> Run:
         raise DatasetError(
             f"{decisions}: line {k + 2}: candidate {cands[k]} is not an earlier frame than {frames[k]}"
         )
-    return Run(
-        path=root,
-        config=config,
-        meta=meta,
-        frames=frames,
-        timestamps=times,
-        status=status,
-        candidates=cands,
-        scores=scores,
-        raw_scores=raw,
-        accepted=acc,
-        stage_ms={s: stage_vals[i] for i, s in enumerate(stages)},
-        truncated=truncated,
-    )
 
 
 def _load_similarity(path: Path, frames: np.ndarray) -> np.ndarray | None:

@@ -106,6 +106,85 @@ def evaluate_torch(net: Any, split: CamVidSplit, input_size: tuple[int, int]) ->
     return summarize(conf)
 
 
+def _resume(last: Path, net: Any, opt: Any, config: TrainConfig) -> tuple[int, float, int]:
+    """Load ``last.pt`` into the network and optimiser: (next epoch, best mIoU, best epoch).
+
+    Raises:
+        ConfigError: the checkpoint's widths differ from the config's.
+    """
+    torch = _require_torch()
+    ckpt = torch.load(last, map_location="cpu", weights_only=False)
+    if tuple(ckpt["config"]["widths"]) != tuple(config.widths):
+        raise ConfigError(f"{last}: checkpoint widths {ckpt['config']['widths']}, asked {config.widths}")
+    net.load_state_dict(ckpt["model"])
+    opt.load_state_dict(ckpt["optimizer"])
+    start_epoch, best_miou, best_epoch = ckpt["epoch"] + 1, ckpt["best_miou"], ckpt["best_epoch"]
+    log.info("resumed from %s at epoch %d (best val mIoU %.4f)", last, start_epoch, best_miou)
+    return start_epoch, best_miou, best_epoch
+
+
+def _train_epoch(
+    net: Any, opt: Any, train_set: CamVidSplit, class_w: Any, config: TrainConfig, epoch: int, steps: int
+) -> list[float]:
+    """One epoch of ``steps`` optimiser steps; the loss of each step.
+
+    The shuffle, the augmentation and torch's dropout are seeded from ``config.seed`` and
+    ``epoch``, so a resumed run repeats the epoch exactly.
+    """
+    torch = _require_torch()
+    import torch.nn.functional as F
+
+    n = len(train_set)
+    rng = np.random.default_rng([config.seed, epoch])
+    torch.manual_seed(config.seed * 100003 + epoch)
+    order = rng.permutation(n)
+    net.train()
+    losses = []
+    for s in range(steps):
+        idx = order[(s * config.batch_size) % n : (s * config.batch_size) % n + config.batch_size]
+        if idx.size < config.batch_size:
+            idx = np.concatenate([idx, order[: config.batch_size - idx.size]])
+        pairs = [augment(train_set.images[i], train_set.labels[i], rng, config.augment) for i in idx]
+        x = torch.from_numpy(np.stack([p[0] for p in pairs]))
+        y = torch.from_numpy(np.stack([p[1] for p in pairs]))
+        for g in opt.param_groups:
+            g["lr"] = lr_at(config, epoch * steps + s, steps)
+        logits = net(x)
+        logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
+        loss = F.cross_entropy(logits, y, weight=class_w, ignore_index=VOID_ID)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.item()))
+    return losses
+
+
+def _save_atomic(checkpoint: dict[str, Any], path: Path) -> None:
+    """``torch.save`` to ``path`` through a ``.tmp`` file, so a killed run never leaves half a file."""
+    torch = _require_torch()
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(checkpoint, tmp)
+    tmp.replace(path)
+
+
+def _log_epoch(
+    out: Path, record: dict[str, Any], config: TrainConfig, best_miou: float, best_epoch: int
+) -> None:
+    """Append the epoch's record to ``log.jsonl`` and log one line."""
+    with open(out / "log.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
+    log.info(
+        "epoch %d/%d loss %.4f val mIoU %s (best %.4f @ %d) %.0fs",
+        record["epoch"] + 1,
+        config.epochs,
+        record["loss"],
+        f"{record['val_miou']:.4f}" if "val_miou" in record else "-",
+        best_miou,
+        best_epoch + 1,
+        record["time_s"],
+    )
+
+
 def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
     """Train (or continue training) and return the best validation metrics.
 
@@ -117,8 +196,6 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
         {"best_miou", "best_epoch", "epochs_done", "out_dir"}.
     """
     torch = _require_torch()
-    import torch.nn.functional as F
-
     from .model import BayesLiteSeg, count_parameters
 
     if config.epochs < 1 or config.batch_size < 1:
@@ -138,61 +215,32 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
     start_epoch, best_miou, best_epoch = 0, -1.0, -1
     last = out / "last.pt"
     if resume and last.is_file():
-        ckpt = torch.load(last, map_location="cpu", weights_only=False)
-        if tuple(ckpt["config"]["widths"]) != tuple(config.widths):
-            raise ConfigError(f"{last}: checkpoint widths {ckpt['config']['widths']}, asked {config.widths}")
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        start_epoch, best_miou, best_epoch = ckpt["epoch"] + 1, ckpt["best_miou"], ckpt["best_epoch"]
-        log.info("resumed from %s at epoch %d (best val mIoU %.4f)", last, start_epoch, best_miou)
+        start_epoch, best_miou, best_epoch = _resume(last, net, opt, config)
     log.info("network: %d parameters, widths %s", count_parameters(net), config.widths)
 
-    n = len(train_set)
-    steps = max(1, n // config.batch_size)
+    steps = max(1, len(train_set) // config.batch_size)
     if config.steps_per_epoch is not None:
         steps = min(steps, config.steps_per_epoch)
     class_w = torch.from_numpy(weights)
     cfg_dict = asdict(config)
     for epoch in range(start_epoch, config.epochs):
         t0 = time.time()
-        rng = np.random.default_rng([config.seed, epoch])
-        torch.manual_seed(config.seed * 100003 + epoch)
-        order = rng.permutation(n)
-        net.train()
-        losses = []
-        for s in range(steps):
-            idx = order[(s * config.batch_size) % n : (s * config.batch_size) % n + config.batch_size]
-            if idx.size < config.batch_size:
-                idx = np.concatenate([idx, order[: config.batch_size - idx.size]])
-            pairs = [augment(train_set.images[i], train_set.labels[i], rng, config.augment) for i in idx]
-            x = torch.from_numpy(np.stack([p[0] for p in pairs]))
-            y = torch.from_numpy(np.stack([p[1] for p in pairs]))
-            for g in opt.param_groups:
-                g["lr"] = lr_at(config, epoch * steps + s, steps)
-            logits = net(x)
-            logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
-            loss = F.cross_entropy(logits, y, weight=class_w, ignore_index=VOID_ID)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.item()))
-        train_s = time.time() - t0
+        losses = _train_epoch(net, opt, train_set, class_w, config, epoch, steps)
         record: dict[str, Any] = {
             "epoch": epoch,
             "loss": float(np.mean(losses)),
             "lr": lr_at(config, (epoch + 1) * steps - 1, steps),
-            "train_s": round(train_s, 1),
+            "train_s": round(time.time() - t0, 1),
         }
         if (epoch + 1) % config.val_every == 0 or epoch + 1 == config.epochs:
             m = evaluate_torch(net, val_set, config.input_size)
             record.update(val_miou=m.miou, val_global=m.global_acc, val_class=m.class_acc)
             if m.miou > best_miou:
                 best_miou, best_epoch = m.miou, epoch
-                torch.save(
+                _save_atomic(
                     {"model": net.state_dict(), "config": cfg_dict, "epoch": epoch, "val": m.as_dict()},
-                    out / "best.pt.tmp",
+                    out / "best.pt",
                 )
-                (out / "best.pt.tmp").replace(out / "best.pt")
         record["time_s"] = round(time.time() - t0, 1)
         ckpt = {
             "model": net.state_dict(),
@@ -202,20 +250,8 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
             "best_epoch": best_epoch,
             "config": cfg_dict,
         }
-        torch.save(ckpt, out / "last.pt.tmp")
-        (out / "last.pt.tmp").replace(last)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(record) + "\n")
-        log.info(
-            "epoch %d/%d loss %.4f val mIoU %s (best %.4f @ %d) %.0fs",
-            epoch + 1,
-            config.epochs,
-            record["loss"],
-            f"{record['val_miou']:.4f}" if "val_miou" in record else "-",
-            best_miou,
-            best_epoch + 1,
-            record["time_s"],
-        )
+        _save_atomic(ckpt, last)
+        _log_epoch(out, record, config, best_miou, best_epoch)
     return {
         "best_miou": best_miou,
         "best_epoch": best_epoch,
