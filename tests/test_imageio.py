@@ -206,6 +206,9 @@ def test_natural_key_is_total() -> None:
     ordered = sorted(mixed, key=natural_key)
     assert ordered == ["A.png", "a.png", "B.png", "b.png"]  # case only breaks ties
     assert sorted(reversed(mixed), key=natural_key) == ordered  # whatever the input order
+    # case and leading zeros decide only between names that are otherwise equal
+    assert sorted(["Img2.png", "img1.png"], key=natural_key) == ["img1.png", "Img2.png"]
+    assert sorted(["a01b2", "a1b1"], key=natural_key) == ["a1b1", "a01b2"]
 
 
 def test_list_images_recursive_and_empty(tmp_path: Path) -> None:

@@ -152,14 +152,15 @@ def to_grey(image: np.ndarray, name: str = "image") -> np.ndarray:
 # listing
 
 
-def natural_key(name: str) -> tuple[tuple[int, int | str, str], ...]:
-    """Sort key comparing digit runs as numbers: ``2.png`` before ``10.png``.
+def natural_key(name: str) -> tuple[tuple[tuple[int, int | str], ...], str]:
+    """Sort key comparing digit runs as numbers and letters without case: ``2.png`` before
+    ``10.png``, ``img1`` before ``Img2``.
 
-    Ties between names that differ only in case or leading zeros are broken by the raw text,
-    so the order is total and the same on every file system.
+    Names equal under that comparison (``a01`` and ``a1``, ``A.png`` and ``a.png``) are ordered
+    by their raw text, so the order is total and the same on every file system.
     """
     parts = re.split(r"(\d+)", name)
-    return tuple((0, int(p), p) if p.isdigit() else (1, p.lower(), p) for p in parts)
+    return tuple((0, int(p)) if p.isdigit() else (1, p.lower()) for p in parts), name
 
 
 def is_image_file(path: Path) -> bool:
