@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stablecues.datasets.synthetic import SyntheticTown, SyntheticTownConfig, write_sequence
+from stablecues.synthetic import SyntheticTown, SyntheticTownConfig, write_sequence
 
 
 def time_frames(town: SyntheticTown, frames: list[int], **kw: bool) -> tuple[float, float]:

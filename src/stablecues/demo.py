@@ -83,12 +83,12 @@ def run_demo(
         progress: progress bars.
     """
     from .datasets import open_dataset
-    from .datasets.synthetic import SyntheticTownConfig, write_sequence
     from .detection import preset
     from .detection.run import run_dataset
     from .evaluation import evaluate_run, load_ground_truth, load_run
     from .evaluation.evaluate import eval_file_name, save_evaluation
     from .evaluation.report import build_report
+    from .synthetic import SyntheticTownConfig, write_sequence
 
     t0 = time.perf_counter()
     out = Path(out_dir)

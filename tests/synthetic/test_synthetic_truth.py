@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from stablecues.datasets.synthetic import (
+from stablecues.errors import ConfigError, InputError
+from stablecues.synthetic import (
     LoopTruthConfig,
     SyntheticTown,
     SyntheticTownConfig,
     Visibility,
     loop_truth,
 )
-from stablecues.errors import ConfigError, InputError
 
 
 def _straight(
@@ -85,15 +85,6 @@ def test_opposite_rules_are_nested() -> None:
     for a, b in extra:
         d = abs((town.headings[a] - town.headings[b] + math.pi) % (2 * math.pi) - math.pi)
         assert math.degrees(d) > 35.0
-
-
-def test_visibility_sees_landmarks() -> None:
-    town = SyntheticTown(SyntheticTownConfig(frames=10, width=64, height=48, loops=0, seed=2))
-    vis = town.visibility(range(3))
-    assert len(vis.ids) == 3
-    for ids, counts in zip(vis.ids, vis.counts, strict=True):
-        assert len(ids) > 10 and np.all(np.diff(ids) > 0) and np.all(counts > 0)
-    assert vis.centres.shape[1] == 3
 
 
 def test_bad_inputs() -> None:

@@ -8,7 +8,7 @@ depth, CamVid labels and its exact pose; the loop matrix follows from poses and 
 
 Typical use::
 
-    from stablecues.datasets.synthetic import SyntheticTownConfig, SyntheticTown, write_sequence
+    from stablecues.synthetic import SyntheticTownConfig, SyntheticTown, write_sequence
 
     cfg = SyntheticTownConfig(frames=300, width=384, height=288, loops=2, seed=0)
     write_sequence(cfg, "town/")          # image-folder format, loops.npy included

@@ -72,6 +72,44 @@ class View:
     levels: np.ndarray
 
 
+@dataclass
+class _Batch:
+    """The candidate quads of one view, ready to draw nearest first (see :meth:`Renderer._batch`).
+
+    Per-quad values are plain Python lists for the drawing loop (numpy scalar indexing is slow).
+
+    Attributes:
+        order: indices of the quads with something on screen, nearest first.
+        boxes: (x0, y0, x1, y1) screen bounding box of each quad, clamped to the image.
+        izmax: inverse of each quad's nearest depth (at least the near plane's).
+        abcs: (a, b, c) of each quad's plane: inverse depth = a x + b y + c at pixel (x, y).
+        gains: (b, g, r, 1) shading factors of each quad.
+        tex: texture id of each quad.
+        label: CamVid class id of each quad.
+        chosen: mip level chosen for each quad.
+        H0: (M, 3, 3) texel -> pixel homographies at level 0.
+        H: (M, 3, 3) texel -> bounding-box pixel homographies at the chosen levels.
+        pts16: (M, 4, 2) int32 screen corners relative to the box, in 1/16 pixels.
+        clipped: {index: (k, 2) screen polygon} of the quads clipped by the near plane.
+        levels: (M,) int8 mip level used per quad: ``chosen``, lowered for textures with fewer
+            levels as the quads are drawn.
+    """
+
+    order: list[int]
+    boxes: list[list[int]]
+    izmax: list[float]
+    abcs: list[list[float]]
+    gains: list[tuple[float, float, float, float]]
+    tex: list[int]
+    label: list[int]
+    chosen: list[int]
+    H0: np.ndarray
+    H: np.ndarray
+    pts16: np.ndarray
+    clipped: dict[int, np.ndarray]
+    levels: np.ndarray
+
+
 def cull(
     R: np.ndarray,
     C: np.ndarray,
@@ -251,79 +289,12 @@ class Renderer:
         img = np.zeros((H, W, 3), np.uint8)
         ibuf = np.zeros((H, W), np.float32)  # inverse depth: 0 where nothing is (the sky)
         lab = np.full((H, W), SKY, np.uint8) if labels else None
-        m_count = len(quads)
-        lv = np.full(m_count, -1, np.int8) if levels is None else levels.copy()
-        if m_count:
-            g = self._prepare(quads, R, C, normals)
-            facing = g["d"] < 0.0  # camera on the front side of the plane
-            ok, box, zmin, poly, clipped = self._screen_all(g["pc"], quads.two_sided | facing)
-            eff_n = np.where(facing[:, None], normals, -normals)
-            gains = light.gains(eff_n, quads.lit)
-            # mip level: texels per pixel at the quad's nearest point, between the footprint
-            # across the view and the (longer) one along a surface seen at a grazing angle
-            # (geometric mean; warpPerspective has no anisotropic filtering)
-            texel = np.linalg.norm(quads.u, axis=1)
-            zn = np.maximum(zmin, self.near)
-            grazing = np.clip(np.abs(g["d"]) / zn, 0.05, 1.0)
-            with np.errstate(divide="ignore"):
-                auto = np.floor(np.log2(np.maximum(zn / cam.fx / texel / np.sqrt(grazing), 1e-9)) + 0.3)
-            lv = np.where(lv < 0, np.clip(auto, 0, 6), lv).astype(np.int8)
-            order = np.nonzero(ok)[0]
-            order = order[np.argsort(zmin[order], kind="stable")]
-            # texel -> bounding-box pixel homographies at the chosen level, all at once
-            Hs = g["H"].copy()
-            scale = np.ldexp(1.0, lv.astype(np.int64))
-            Hs[:, :, 0] *= scale[:, None]
-            Hs[:, :, 1] *= scale[:, None]
-            Hs[:, 0, :] -= box[:, :1] * Hs[:, 2, :]
-            Hs[:, 1, :] -= box[:, 1:2] * Hs[:, 2, :]
-            with np.errstate(invalid="ignore"):
-                pts16 = np.round((poly - box[:, None, :2]) * 16.0).astype(np.int32)
-            # plain Python values for the loop (numpy scalar indexing is slow)
-            boxes = box.tolist()
-            izmax = (1.0 / np.maximum(zmin, self.near)).tolist()
-            abcs = g["abc"].tolist()
-            gain_l = [(g0, g1, g2, 1.0) for g0, g1, g2 in gains.tolist()]
-            tex_l = quads.tex.tolist()
-            lab_l = quads.label.tolist()
-            lv_l = lv.tolist()
-            for qi in order.tolist():
-                x0, y0, x1, y1 = boxes[qi]
-                ib = ibuf[y0:y1, x0:x1]
-                # hidden behind what is already drawn? (near quads rarely are: skip the test)
-                if izmax[qi] < NEAR_TEST and ib.min() > izmax[qi]:
-                    continue
-                pyramid = self.bank.levels(tex_l[qi])
-                level = lv_l[qi]
-                Hm = Hs[qi]
-                if level >= len(pyramid):  # a small texture has fewer levels
-                    level = len(pyramid) - 1
-                    lv[qi] = level
-                    Hm = g["H"][qi].copy()
-                    Hm[:, :2] *= float(1 << level)
-                    Hm[0] -= x0 * Hm[2]
-                    Hm[1] -= y0 * Hm[2]
-                bw, bh = x1 - x0, y1 - y0
-                warped = cv2.warpPerspective(
-                    pyramid[level], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-                )
-                mask = np.zeros((bh, bw), np.uint8)
-                pp = clipped.get(qi)
-                pts = pts16[qi] if pp is None else np.round((pp - (x0, y0)) * 16.0).astype(np.int32)
-                cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
-                a_, b_, c_ = abcs[qi]
-                iz = cv2.addWeighted(self.gx[y0:y1, x0:x1], a_, self.gy[y0:y1, x0:x1], b_, c_)
-                cv2.bitwise_and(mask, cv2.compare(iz, ib, cv2.CMP_GT), dst=mask)
-                if warped.shape[2] == 4:
-                    opaque = cv2.threshold(cv2.extractChannel(warped, 3), 127, 255, cv2.THRESH_BINARY)[1]
-                    cv2.bitwise_and(mask, opaque, dst=mask)
-                    col = cv2.cvtColor(_multiply(warped, gain_l[qi]), cv2.COLOR_BGRA2BGR)
-                else:
-                    col = _multiply(warped, gain_l[qi])
-                cv2.copyTo(iz, mask, ib)
-                cv2.copyTo(col, mask, img[y0:y1, x0:x1])
-                if lab is not None:
-                    cv2.copyTo(self._label_planes[lab_l[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
+        lv = np.full(len(quads), -1, np.int8) if levels is None else levels.copy()
+        if len(quads):
+            batch = self._batch(quads, R, C, normals, light, lv)
+            for qi in batch.order:
+                self._draw_quad(qi, batch, img, ibuf, lab)
+            lv = batch.levels
         if decals is not None and len(decals.quads):
             self._shadows(img, ibuf, R, C, decals)
         self._sky(img, ibuf, R, light)
@@ -331,6 +302,105 @@ class Renderer:
             self._add_noise(img, noise, noise_rng if noise_rng is not None else np.random.default_rng(0))
         depth = np.divide(np.float32(1.0), ibuf, out=np.zeros_like(ibuf), where=ibuf > 0)
         return View(img, depth, lab, lv)
+
+    def _batch(
+        self,
+        quads: QuadSet,
+        R: np.ndarray,
+        C: np.ndarray,
+        normals: np.ndarray,
+        light: Lighting,
+        levels: np.ndarray,
+    ) -> _Batch:
+        """Project, shade and order the candidate quads, and choose their mip levels (-1 in ``levels``)."""
+        g = self._prepare(quads, R, C, normals)
+        facing = g["d"] < 0.0  # camera on the front side of the plane
+        ok, box, zmin, poly, clipped = self._screen_all(g["pc"], quads.two_sided | facing)
+        eff_n = np.where(facing[:, None], normals, -normals)
+        gains = light.gains(eff_n, quads.lit)
+        lv = self._mip_levels(quads, g["d"], zmin, levels)
+        order = np.nonzero(ok)[0]
+        order = order[np.argsort(zmin[order], kind="stable")]
+        # texel -> bounding-box pixel homographies at the chosen level, all at once
+        Hs = g["H"].copy()
+        scale = np.ldexp(1.0, lv.astype(np.int64))
+        Hs[:, :, 0] *= scale[:, None]
+        Hs[:, :, 1] *= scale[:, None]
+        Hs[:, 0, :] -= box[:, :1] * Hs[:, 2, :]
+        Hs[:, 1, :] -= box[:, 1:2] * Hs[:, 2, :]
+        with np.errstate(invalid="ignore"):
+            pts16 = np.round((poly - box[:, None, :2]) * 16.0).astype(np.int32)
+        return _Batch(
+            order=order.tolist(),
+            boxes=box.tolist(),
+            izmax=(1.0 / np.maximum(zmin, self.near)).tolist(),
+            abcs=g["abc"].tolist(),
+            gains=[(g0, g1, g2, 1.0) for g0, g1, g2 in gains.tolist()],
+            tex=quads.tex.tolist(),
+            label=quads.label.tolist(),
+            chosen=lv.tolist(),
+            H0=g["H"],
+            H=Hs,
+            pts16=pts16,
+            clipped=clipped,
+            levels=lv,
+        )
+
+    def _mip_levels(self, quads: QuadSet, d: np.ndarray, zmin: np.ndarray, levels: np.ndarray) -> np.ndarray:
+        """(M,) int8 mip levels: ``levels`` where set (>= 0), else chosen from the quads' footprints.
+
+        The level follows texels per pixel at the quad's nearest point, between the footprint
+        across the view and the (longer) one along a surface seen at a grazing angle (geometric
+        mean; warpPerspective has no anisotropic filtering). ``d`` (M,) is each quad's plane
+        offset in the camera frame and ``zmin`` (M,) its nearest depth.
+        """
+        texel = np.linalg.norm(quads.u, axis=1)
+        zn = np.maximum(zmin, self.near)
+        grazing = np.clip(np.abs(d) / zn, 0.05, 1.0)
+        with np.errstate(divide="ignore"):
+            auto = np.floor(np.log2(np.maximum(zn / self.cam.fx / texel / np.sqrt(grazing), 1e-9)) + 0.3)
+        return np.where(levels < 0, np.clip(auto, 0, 6), levels).astype(np.int8)
+
+    def _draw_quad(
+        self, qi: int, batch: _Batch, img: np.ndarray, ibuf: np.ndarray, lab: np.ndarray | None
+    ) -> None:
+        """Warp quad ``qi``'s texture into its box and composite it where it is nearest (in place)."""
+        x0, y0, x1, y1 = batch.boxes[qi]
+        ib = ibuf[y0:y1, x0:x1]
+        # hidden behind what is already drawn? (near quads rarely are: skip the test)
+        if batch.izmax[qi] < NEAR_TEST and ib.min() > batch.izmax[qi]:
+            return
+        pyramid = self.bank.levels(batch.tex[qi])
+        level = batch.chosen[qi]
+        Hm = batch.H[qi]
+        if level >= len(pyramid):  # a small texture has fewer levels
+            level = len(pyramid) - 1
+            batch.levels[qi] = level
+            Hm = batch.H0[qi].copy()
+            Hm[:, :2] *= float(1 << level)
+            Hm[0] -= x0 * Hm[2]
+            Hm[1] -= y0 * Hm[2]
+        bw, bh = x1 - x0, y1 - y0
+        warped = cv2.warpPerspective(
+            pyramid[level], Hm, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        mask = np.zeros((bh, bw), np.uint8)
+        pp = batch.clipped.get(qi)
+        pts = batch.pts16[qi] if pp is None else np.round((pp - (x0, y0)) * 16.0).astype(np.int32)
+        cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+        a_, b_, c_ = batch.abcs[qi]
+        iz = cv2.addWeighted(self.gx[y0:y1, x0:x1], a_, self.gy[y0:y1, x0:x1], b_, c_)
+        cv2.bitwise_and(mask, cv2.compare(iz, ib, cv2.CMP_GT), dst=mask)
+        if warped.shape[2] == 4:
+            opaque = cv2.threshold(cv2.extractChannel(warped, 3), 127, 255, cv2.THRESH_BINARY)[1]
+            cv2.bitwise_and(mask, opaque, dst=mask)
+            col = cv2.cvtColor(_multiply(warped, batch.gains[qi]), cv2.COLOR_BGRA2BGR)
+        else:
+            col = _multiply(warped, batch.gains[qi])
+        cv2.copyTo(iz, mask, ib)
+        cv2.copyTo(col, mask, img[y0:y1, x0:x1])
+        if lab is not None:
+            cv2.copyTo(self._label_planes[batch.label[qi]][:bh, :bw], mask, lab[y0:y1, x0:x1])
 
     def _add_noise(self, img: np.ndarray, sigma: float, rng: np.random.Generator) -> None:
         """Add Gaussian sensor noise in place: a window of a fixed noise field, placed by ``rng``."""

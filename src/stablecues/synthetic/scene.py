@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ...semantics.classes import CLASS_NAMES, VOID_NAME
+from ..semantics.classes import CLASS_NAMES, VOID_NAME
 
 # CamVid 11-class ids
 SKY, BUILDING, POLE, ROAD, PAVEMENT, TREE, SIGN, FENCE, CAR, PEDESTRIAN, BICYCLIST, UNLABELLED = range(12)

@@ -13,7 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...errors import DatasetError, InputError, check_array
+from ..errors import DatasetError, InputError, check_array
+from ..groundtruth import save_ground_truth
+from ..trajectory import write_times
 from . import textures as tx
 from .config import SyntheticTownConfig
 from .render import Intrinsics, Renderer, View, cull
@@ -471,15 +473,16 @@ def write_sequence(
         if f.labels is not None:
             _imwrite(out / "labels" / name, f.labels, png)
     gt = seq.ground_truth(truth)
-    np.save(out / "loops.npy", gt)
-    (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in seq.times))
+    save_ground_truth(out / "loops.npy", gt)
+    write_times(out / "times.txt", seq.times)
+    # its own TUM lines, not trajectory.write_tum: poses.txt has 6 and 9 decimals, write_tum writes 4 and 7
     (out / "poses.txt").write_text(
         "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n"
         + "".join(_tum_line(float(t), p) + "\n" for t, p in zip(seq.times, seq.poses, strict=True))
     )
     (out / "calib.yaml").write_text(seq.calibration_yaml())
     meta = {
-        "generator": "stablecues.datasets.synthetic",
+        "generator": "stablecues.synthetic",
         "config": asdict(config),
         "truth": asdict(truth),
         "frames": len(seq),

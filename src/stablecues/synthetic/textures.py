@@ -13,6 +13,7 @@ lettering, wear and per-window curtains all come from the object's own seed).
 from __future__ import annotations
 
 import string
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -170,42 +171,115 @@ def _wall(rng: Rng, h: int, w: int, ppm: float, colour: tuple[int, int, int], ma
     return _add_tone(img, tone)
 
 
-def _window(
-    img: np.ndarray,
-    x0: int,
-    y0: int,
-    x1: int,
-    y1: int,
-    rng: Rng,
-    frame: tuple[int, int, int],
-    t: int,
-    mullion: int,
-    sill: bool,
-    shutters: tuple[int, int, int] | None,
-    wall: tuple[int, int, int],
-) -> None:
-    """Draw one window (glass, curtains or blinds, frame, mullions, sill) in place."""
+Colour = tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class _Sheet:
+    """A texture drawn in metres: ``ppm`` pixels per metre, ``w`` x ``h`` pixels, row 0 at the top."""
+
+    ppm: float
+    w: int
+    h: int
+
+    def px(self, m: float) -> int:
+        """Metres -> pixels."""
+        return int(round(m * self.ppm))
+
+    def row(self, z: float) -> int:
+        """Metres above the bottom edge -> texture row."""
+        return self.h - self.px(z)
+
+
+@dataclass(frozen=True)
+class _WindowStyle:
+    """What every window of one building shares.
+
+    Attributes:
+        frame: BGR colour of the frames.
+        t: frame thickness, pixels.
+        mullion: 0 none, 1 vertical, 2 horizontal, 3 both.
+        sill: draw a sill under each window.
+        shutters: BGR colour of the shutters, or None for none.
+        wall: BGR colour of the wall (sills and ledges are shades of it).
+    """
+
+    frame: Colour
+    t: int
+    mullion: int
+    sill: bool
+    shutters: Colour | None
+    wall: Colour
+
+
+@dataclass(frozen=True)
+class _FloorPlan:
+    """Where a facade's floors and window columns lie, in metres.
+
+    Attributes:
+        gf: height of the ground floor.
+        fh: height of each upper floor.
+        n_floors: number of upper floors.
+        win_w, win_h: window size.
+        spacing: distance between window columns.
+        n_cols: number of window columns.
+        x_first: centre of the first column from the facade's left edge.
+        cornice: a ledge at the foot of each upper floor.
+        balcony_floors: upper floors (0: the first) with balconies.
+    """
+
+    gf: float
+    fh: float
+    n_floors: int
+    win_w: float
+    win_h: float
+    spacing: float
+    n_cols: int
+    x_first: float
+    cornice: bool
+    balcony_floors: set[int]
+
+
+def _window(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, rng: Rng, style: _WindowStyle) -> None:
+    """Draw one window (shutters, glass, curtains or blinds, frame, mullions, sill) in place."""
     x0, y0 = max(0, x0), max(0, y0)
     x1, y1 = min(img.shape[1], x1), min(img.shape[0], y1)
-    h, w = y1 - y0, x1 - x0
-    if h < 4 or w < 4:
+    if y1 - y0 < 4 or x1 - x0 < 4:
         return
-    if shutters is not None:
-        sw = max(2, w // 2 - 1)
-        for sx0 in (x0 - sw - 1, x1 + 1):
-            cv2.rectangle(img, (sx0, y0), (sx0 + sw, y1), shutters, -1)
-            for yy in range(y0 + 2, y1, max(2, h // 10)):
-                cv2.line(img, (sx0, yy), (sx0 + sw, yy), _shade(shutters, 0.7), 1)
+    if style.shutters is not None:
+        _shutters(img, x0, y0, x1, y1, style.shutters)
+    _glass(img, x0, y0, x1, y1, rng)
+    _window_dressing(img, x0, y0, x1, y1, rng)
+    _window_frame(img, x0, y0, x1, y1, style)
+
+
+def _shutters(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, colour: Colour) -> None:
+    """Louvred shutters either side of the window [x0, x1) x [y0, y1)."""
+    h, w = y1 - y0, x1 - x0
+    sw = max(2, w // 2 - 1)
+    for sx0 in (x0 - sw - 1, x1 + 1):
+        cv2.rectangle(img, (sx0, y0), (sx0 + sw, y1), colour, -1)
+        for yy in range(y0 + 2, y1, max(2, h // 10)):
+            cv2.line(img, (sx0, yy), (sx0 + sw, yy), _shade(colour, 0.7), 1)
+
+
+def _glass(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, rng: Rng) -> None:
+    """Fill the window with dark glass and a diagonal reflection band, different in every window."""
+    h, w = y1 - y0, x1 - x0
     top = np.array(_col(rng, ((70, 60, 50), (90, 80, 60), (60, 55, 55), (110, 100, 85)), 10), np.float32)
     grad = np.linspace(1.15, 0.75, h, dtype=np.float32)[:, None, None]
     glass = np.clip(top[None, None, :] * grad + np.zeros((1, w, 1), np.float32), 0, 255)
-    # a diagonal reflection band, different in every window
     ys, xs = np.mgrid[0:h, 0:w]
     k = rng.uniform(0.3, 1.5)
     off = rng.uniform(-0.5, 1.0) * w
     band = np.abs(xs + k * ys - off) < rng.uniform(0.08, 0.25) * w
     glass[band] = np.clip(glass[band] * 1.6 + 25, 0, 255)
     img[y0:y1, x0:x1] = glass.astype(np.uint8)
+
+
+def _window_dressing(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, rng: Rng) -> None:
+    """Side curtains, a blind pulled down part way, a pot plant, or nothing, behind the glass."""
+    h, w = y1 - y0, x1 - x0
     kind = rng.random()
     curtain = _col(rng, CLOTH_COLOURS + ((230, 230, 230),) * 3, 15)
     if kind < 0.3:  # side curtains
@@ -223,17 +297,26 @@ def _window(
         cx = x0 + int(rng.uniform(0.25, 0.75) * w)
         cv2.circle(img, (cx, y1 - r - 2), r, (40, 110, 50), -1)
         cv2.rectangle(img, (cx - r // 2, y1 - r), (cx + r // 2, y1), (40, 70, 150), -1)
+
+
+def _window_frame(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, style: _WindowStyle) -> None:
+    """The frame, mullions and sill of the window [x0, x1) x [y0, y1)."""
+    frame, t = style.frame, style.t
     cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), frame, t)
-    if mullion in (1, 3):
+    if style.mullion in (1, 3):
         cx = (x0 + x1) // 2
         cv2.line(img, (cx, y0), (cx, y1), frame, max(1, t // 2 + 1))
-    if mullion in (2, 3):
-        cy = y0 + h // 3
+    if style.mullion in (2, 3):
+        cy = y0 + (y1 - y0) // 3
         cv2.line(img, (x0, cy), (x1, cy), frame, max(1, t // 2 + 1))
-    if sill:
-        cv2.rectangle(img, (x0 - t - 1, y1), (x1 + t, y1 + max(2, t + 1)), _shade(wall, 1.25), -1)
+    if style.sill:
+        cv2.rectangle(img, (x0 - t - 1, y1), (x1 + t, y1 + max(2, t + 1)), _shade(style.wall, 1.25), -1)
         cv2.line(
-            img, (x0 - t - 1, y1 + max(2, t + 1) + 1), (x1 + t, y1 + max(2, t + 1) + 1), _shade(wall, 0.55), 1
+            img,
+            (x0 - t - 1, y1 + max(2, t + 1) + 1),
+            (x1 + t, y1 + max(2, t + 1) + 1),
+            _shade(style.wall, 0.55),
+            1,
         )
 
 
@@ -249,17 +332,30 @@ def facade(
         shops: allow shop fronts on the ground floor.
         side: a side or back wall: plainer, fewer windows, no shops.
     """
-    w = max(8, int(round(width_m * ppm)))
-    h = max(8, int(round(height_m * ppm)))
-
-    def px(m: float) -> int:
-        return int(round(m * ppm))
-
+    sheet = _Sheet(ppm, max(8, int(round(width_m * ppm))), max(8, int(round(height_m * ppm))))
     wall = _col(rng, WALL_COLOURS, 14)
     material = str(rng.choice(["plaster", "brick", "stone", "panel"], p=[0.4, 0.3, 0.15, 0.15]))
-    img = _wall(rng, h, w, ppm, wall, material)
+    img = _wall(rng, sheet.h, sheet.w, ppm, wall, material)
+    style = _window_style(rng, sheet, wall)
+    plan = _floor_plan(rng, width_m, height_m, side=side)
+    _upper_floors(img, rng, sheet, plan, style, side=side)
+    if shops and not side and rng.random() < 0.75:
+        _shop_fronts(img, rng, sheet, width_m, plan.gf, style)
+    else:
+        _residential_ground_floor(img, rng, sheet, width_m, plan, style)
+    _plinth(img, sheet, wall)
+    if not side and rng.random() < 0.35:
+        _posters(img, rng, sheet, width_m)
+    if rng.random() < 0.6:
+        _drainpipe(img, rng, sheet, width_m)
+    _roof_cornice(img, rng, sheet, wall)
+    return _weathered(img, rng, sheet)
+
+
+def _window_style(rng: Rng, sheet: _Sheet, wall: Colour) -> _WindowStyle:
+    """Draw a building's window style."""
     frame = _col(rng, FRAME_COLOURS, 8)
-    t = max(1, px(rng.uniform(0.05, 0.1)))
+    t = max(1, sheet.px(rng.uniform(0.05, 0.1)))
     mullion = int(rng.integers(0, 4))
     sill = bool(rng.random() < 0.8)
     shutters = (
@@ -267,6 +363,11 @@ def facade(
         if rng.random() < 0.2
         else None
     )
+    return _WindowStyle(frame, t, mullion, sill, shutters, wall)
+
+
+def _floor_plan(rng: Rng, width_m: float, height_m: float, *, side: bool) -> _FloorPlan:
+    """Draw a facade's floor heights, window size and columns (side walls: fewer columns)."""
     gf = rng.uniform(3.6, 4.6) if not side else rng.uniform(2.8, 3.2)
     fh = rng.uniform(2.9, 3.4)
     parapet = rng.uniform(0.6, 1.4)
@@ -279,138 +380,203 @@ def facade(
     n_cols = max(1, int((width_m - 1.0) / spacing))
     x_first = (width_m - (n_cols - 1) * spacing) / 2.0
     cornice = rng.random() < 0.5
-    balcony_floors = (
+    balcony_floors: set[int] = (
         set(rng.choice(max(n_floors, 1), size=min(n_floors, int(rng.integers(0, 3))), replace=False).tolist())
         if n_floors and rng.random() < 0.35
         else set()
     )
+    return _FloorPlan(gf, fh, n_floors, win_w, win_h, spacing, n_cols, x_first, cornice, balcony_floors)
 
-    def row(z: float) -> int:  # metres above ground -> texture row
-        return h - px(z)
 
-    # upper floors
-    for f in range(n_floors):
-        base = gf + f * fh
-        if cornice:
+def _upper_floors(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, plan: _FloorPlan, style: _WindowStyle, *, side: bool
+) -> None:
+    """Ledges, windows (now and then a blind one) and balconies of the floors above the ground floor."""
+    px, row = sheet.px, sheet.row
+    for f in range(plan.n_floors):
+        base = plan.gf + f * plan.fh
+        if plan.cornice:
             yb = row(base)
-            cv2.rectangle(img, (0, yb - px(0.22)), (w, yb), _shade(wall, 1.18), -1)
-            cv2.line(img, (0, yb + 1), (w, yb + 1), _shade(wall, 0.6), 1)
-        for c in range(n_cols):
+            cv2.rectangle(img, (0, yb - px(0.22)), (sheet.w, yb), _shade(style.wall, 1.18), -1)
+            cv2.line(img, (0, yb + 1), (sheet.w, yb + 1), _shade(style.wall, 0.6), 1)
+        for c in range(plan.n_cols):
             if side and rng.random() < 0.4:
                 continue
-            cx = x_first + c * spacing
-            x0, x1 = px(cx - win_w / 2), px(cx + win_w / 2)
-            y1, y0 = row(base + 0.9), row(base + 0.9 + win_h)
+            cx = plan.x_first + c * plan.spacing
+            x0, x1 = px(cx - plan.win_w / 2), px(cx + plan.win_w / 2)
+            y1, y0 = row(base + 0.9), row(base + 0.9 + plan.win_h)
             if rng.random() < 0.03:  # a blind window: a plaque instead
-                cv2.rectangle(img, (x0, y0), (x1, y1), _shade(wall, 0.85), -1)
+                cv2.rectangle(img, (x0, y0), (x1, y1), _shade(style.wall, 0.85), -1)
                 continue
-            _window(img, x0, y0, x1, y1, rng, frame, t, mullion, sill, shutters, wall)
-            if f in balcony_floors:
-                yb0, yb1 = row(base + 1.0), row(base)
-                rail = _shade(frame, 0.8)
-                cv2.rectangle(img, (x0 - px(0.3), yb0), (x1 + px(0.3), yb1), _shade(wall, 0.8), -1)
-                for xx in range(x0 - px(0.3), x1 + px(0.3), max(2, px(0.12))):
-                    cv2.line(img, (xx, yb0), (xx, yb1), rail, 1)
-                cv2.line(img, (x0 - px(0.3), yb0), (x1 + px(0.3), yb0), rail, max(1, t))
+            _window(img, x0, y0, x1, y1, rng, style)
+            if f in plan.balcony_floors:
+                _balcony(img, sheet, x0, x1, base, style)
 
-    # ground floor
-    if shops and not side and rng.random() < 0.75:
-        n_units = max(1, min(3, int(width_m / rng.uniform(4.5, 7.0))))
-        uw = width_m / n_units
-        for u in range(n_units):
-            ux0 = u * uw + 0.3
-            ux1 = (u + 1) * uw - 0.3
-            sign_bg = _col(rng, CAR_COLOURS + FRAME_COLOURS, 10)
-            sign_fg = (255, 255, 255) if sum(sign_bg) < 380 else (20, 20, 20)
-            sy0, sy1 = row(gf - 0.25), row(gf - 0.25 - rng.uniform(0.5, 0.8))
-            ys0, ys1 = row(gf - 0.95), row(0.35)
-            door_w = rng.uniform(1.0, 1.4)
-            door_left = rng.random() < 0.5
-            dx0 = ux0 if door_left else ux1 - door_w
-            dx1 = dx0 + door_w
-            wx0, wx1 = (dx1 + 0.15, ux1) if door_left else (ux0, dx0 - 0.15)
-            # display window with goods
-            cv2.rectangle(img, (px(wx0), ys0), (px(wx1), ys1), (55, 50, 45), -1)
-            for _ in range(int(rng.integers(3, 10))):
-                gx = rng.uniform(wx0 + 0.1, wx1 - 0.4)
-                gy = rng.uniform(0.45, gf - 1.6)
-                gw, gh = rng.uniform(0.15, 0.6), rng.uniform(0.2, 0.7)
-                cv2.rectangle(
-                    img, (px(gx), row(gy + gh)), (px(gx + gw), row(gy)), _col(rng, CLOTH_COLOURS, 30), -1
-                )
-            cv2.rectangle(img, (px(wx0), ys0), (px(wx1), ys1), frame, t + 1)
-            # door
-            door = _col(rng, FRAME_COLOURS + ((40, 60, 100),), 10)
-            cv2.rectangle(img, (px(dx0), row(2.3)), (px(dx1), row(0.0)), door, -1)
-            cv2.rectangle(img, (px(dx0 + 0.12), row(2.1)), (px(dx1 - 0.12), row(1.0)), (70, 60, 55), -1)
-            cv2.circle(img, (px(dx1 - 0.2), row(1.05)), max(1, px(0.04)), (160, 180, 190), -1)
-            # sign band with lettering
-            cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), sign_bg, -1)
-            cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), _shade(sign_bg, 0.5), 1)
-            font = _FONTS[int(rng.integers(len(_FONTS) - 1))]
-            put_text_box(
-                img, random_word(rng, 3, 8), px(ux0) + 2, sy0 + 1, px(ux1) - 2, sy1 - 1, sign_fg, font
-            )
-            if rng.random() < 0.4:  # striped awning under the sign
-                a0, a1 = sy1 + 1, sy1 + px(0.5)
-                c1, c2 = _col(rng, CLOTH_COLOURS, 10), (235, 235, 235)
-                stripe = max(3, px(0.3))
-                for k, xx in enumerate(range(px(ux0), px(ux1), stripe)):
-                    cv2.rectangle(img, (xx, a0), (min(px(ux1), xx + stripe), a1), c1 if k % 2 else c2, -1)
-                cv2.line(img, (px(ux0), a1 + 1), (px(ux1), a1 + 1), (40, 40, 40), 1)
-    else:
-        # residential ground floor: a door with steps and windows like the floors above
-        door = _col(rng, FRAME_COLOURS + ((40, 60, 120), (30, 90, 30)), 10)
-        dcx = rng.uniform(1.5, max(1.6, width_m - 1.5))
-        cv2.rectangle(img, (px(dcx - 0.55), row(2.4)), (px(dcx + 0.55), row(0.0)), door, -1)
-        for pz in (0.4, 1.3):
-            cv2.rectangle(
-                img, (px(dcx - 0.4), row(pz + 0.8)), (px(dcx + 0.4), row(pz)), _shade(door, 0.75), max(1, t)
-            )
-        cv2.rectangle(img, (px(dcx - 0.15), row(2.75)), (px(dcx + 0.15), row(2.55)), (230, 230, 230), -1)
-        put_text_box(
-            img,
-            str(int(rng.integers(1, 200))),
-            px(dcx - 0.15),
-            row(2.75),
-            px(dcx + 0.15),
-            row(2.55),
-            (20, 20, 20),
-            cv2.FONT_HERSHEY_SIMPLEX,
+
+def _balcony(img: np.ndarray, sheet: _Sheet, x0: int, x1: int, base: float, style: _WindowStyle) -> None:
+    """A railed balcony in front of the window columns [x0, x1) of the floor starting at ``base`` m."""
+    px, row = sheet.px, sheet.row
+    yb0, yb1 = row(base + 1.0), row(base)
+    rail = _shade(style.frame, 0.8)
+    cv2.rectangle(img, (x0 - px(0.3), yb0), (x1 + px(0.3), yb1), _shade(style.wall, 0.8), -1)
+    for xx in range(x0 - px(0.3), x1 + px(0.3), max(2, px(0.12))):
+        cv2.line(img, (xx, yb0), (xx, yb1), rail, 1)
+    cv2.line(img, (x0 - px(0.3), yb0), (x1 + px(0.3), yb0), rail, max(1, style.t))
+
+
+def _shop_fronts(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, width_m: float, gf: float, style: _WindowStyle
+) -> None:
+    """A ground floor of one to three shops side by side."""
+    n_units = max(1, min(3, int(width_m / rng.uniform(4.5, 7.0))))
+    uw = width_m / n_units
+    for u in range(n_units):
+        _shop_front(img, rng, sheet, u * uw + 0.3, (u + 1) * uw - 0.3, gf, style)
+
+
+def _shop_front(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, ux0: float, ux1: float, gf: float, style: _WindowStyle
+) -> None:
+    """One shop between ``ux0`` and ``ux1`` m: display window, door, lettered sign, maybe an awning."""
+    row = sheet.row
+    sign_bg = _col(rng, CAR_COLOURS + FRAME_COLOURS, 10)
+    sy0, sy1 = row(gf - 0.25), row(gf - 0.25 - rng.uniform(0.5, 0.8))
+    door_w = rng.uniform(1.0, 1.4)
+    door_left = rng.random() < 0.5
+    dx0 = ux0 if door_left else ux1 - door_w
+    dx1 = dx0 + door_w
+    wx0, wx1 = (dx1 + 0.15, ux1) if door_left else (ux0, dx0 - 0.15)
+    _shop_window(img, rng, sheet, wx0, wx1, gf, style)
+    _shop_door(img, rng, sheet, dx0, dx1)
+    _shop_sign(img, rng, sheet, ux0, ux1, sy0, sy1, sign_bg)
+    if rng.random() < 0.4:  # striped awning under the sign
+        _awning(img, rng, sheet, ux0, ux1, sy1)
+
+
+def _shop_window(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, wx0: float, wx1: float, gf: float, style: _WindowStyle
+) -> None:
+    """A display window with goods between ``wx0`` and ``wx1`` m."""
+    px, row = sheet.px, sheet.row
+    ys0, ys1 = row(gf - 0.95), row(0.35)
+    cv2.rectangle(img, (px(wx0), ys0), (px(wx1), ys1), (55, 50, 45), -1)
+    for _ in range(int(rng.integers(3, 10))):
+        gx = rng.uniform(wx0 + 0.1, wx1 - 0.4)
+        gy = rng.uniform(0.45, gf - 1.6)
+        gw, gh = rng.uniform(0.15, 0.6), rng.uniform(0.2, 0.7)
+        cv2.rectangle(img, (px(gx), row(gy + gh)), (px(gx + gw), row(gy)), _col(rng, CLOTH_COLOURS, 30), -1)
+    cv2.rectangle(img, (px(wx0), ys0), (px(wx1), ys1), style.frame, style.t + 1)
+
+
+def _shop_door(img: np.ndarray, rng: Rng, sheet: _Sheet, dx0: float, dx1: float) -> None:
+    """A glazed shop door between ``dx0`` and ``dx1`` m, with its handle."""
+    px, row = sheet.px, sheet.row
+    door = _col(rng, FRAME_COLOURS + ((40, 60, 100),), 10)
+    cv2.rectangle(img, (px(dx0), row(2.3)), (px(dx1), row(0.0)), door, -1)
+    cv2.rectangle(img, (px(dx0 + 0.12), row(2.1)), (px(dx1 - 0.12), row(1.0)), (70, 60, 55), -1)
+    cv2.circle(img, (px(dx1 - 0.2), row(1.05)), max(1, px(0.04)), (160, 180, 190), -1)
+
+
+def _shop_sign(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, ux0: float, ux1: float, sy0: int, sy1: int, bg: Colour
+) -> None:
+    """The sign band between rows ``sy1`` (top) and ``sy0``, lettered with a random word."""
+    px = sheet.px
+    fg = (255, 255, 255) if sum(bg) < 380 else (20, 20, 20)
+    cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), bg, -1)
+    cv2.rectangle(img, (px(ux0), sy0), (px(ux1), sy1), _shade(bg, 0.5), 1)
+    font = _FONTS[int(rng.integers(len(_FONTS) - 1))]
+    put_text_box(img, random_word(rng, 3, 8), px(ux0) + 2, sy0 + 1, px(ux1) - 2, sy1 - 1, fg, font)
+
+
+def _awning(img: np.ndarray, rng: Rng, sheet: _Sheet, ux0: float, ux1: float, sy1: int) -> None:
+    """A striped awning hanging below the sign whose top is row ``sy1``."""
+    px = sheet.px
+    a0, a1 = sy1 + 1, sy1 + px(0.5)
+    c1, c2 = _col(rng, CLOTH_COLOURS, 10), (235, 235, 235)
+    stripe = max(3, px(0.3))
+    for k, xx in enumerate(range(px(ux0), px(ux1), stripe)):
+        cv2.rectangle(img, (xx, a0), (min(px(ux1), xx + stripe), a1), c1 if k % 2 else c2, -1)
+    cv2.line(img, (px(ux0), a1 + 1), (px(ux1), a1 + 1), (40, 40, 40), 1)
+
+
+def _residential_ground_floor(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, width_m: float, plan: _FloorPlan, style: _WindowStyle
+) -> None:
+    """A front door with its house number, and windows like the floors above (none beside the door)."""
+    px, row = sheet.px, sheet.row
+    dcx = _front_door(img, rng, sheet, width_m, style.t)
+    for c in range(plan.n_cols):
+        cx = plan.x_first + c * plan.spacing
+        if abs(cx - dcx) < plan.win_w / 2 + 0.9:
+            continue
+        x0, x1 = px(cx - plan.win_w / 2), px(cx + plan.win_w / 2)
+        y1, y0 = row(1.0), row(1.0 + min(plan.win_h, plan.gf - 1.6))
+        _window(img, x0, y0, x1, y1, rng, style)
+
+
+def _front_door(img: np.ndarray, rng: Rng, sheet: _Sheet, width_m: float, t: int) -> float:
+    """A panelled front door with a number plate above it; returns its centre in metres."""
+    px, row = sheet.px, sheet.row
+    door = _col(rng, FRAME_COLOURS + ((40, 60, 120), (30, 90, 30)), 10)
+    dcx = rng.uniform(1.5, max(1.6, width_m - 1.5))
+    cv2.rectangle(img, (px(dcx - 0.55), row(2.4)), (px(dcx + 0.55), row(0.0)), door, -1)
+    for pz in (0.4, 1.3):
+        cv2.rectangle(
+            img, (px(dcx - 0.4), row(pz + 0.8)), (px(dcx + 0.4), row(pz)), _shade(door, 0.75), max(1, t)
         )
-        for c in range(n_cols):
-            cx = x_first + c * spacing
-            if abs(cx - dcx) < win_w / 2 + 0.9:
-                continue
-            x0, x1 = px(cx - win_w / 2), px(cx + win_w / 2)
-            y1, y0 = row(1.0), row(1.0 + min(win_h, gf - 1.6))
-            _window(img, x0, y0, x1, y1, rng, frame, t, mullion, sill, shutters, wall)
-    # plinth
-    cv2.rectangle(img, (0, row(0.45)), (w, h), _shade(wall, 0.7), -1)
-    cv2.line(img, (0, row(0.45)), (w, row(0.45)), _shade(wall, 0.5), 1)
-    # posters / graffiti on the ground floor
-    if not side and rng.random() < 0.35:
-        for _ in range(int(rng.integers(1, 3))):
-            pw_, ph_ = rng.uniform(0.5, 0.9), rng.uniform(0.7, 1.2)
-            pxx = rng.uniform(0.2, max(0.3, width_m - pw_ - 0.2))
-            pz = rng.uniform(0.6, 1.2)
-            bg = _col(rng, CLOTH_COLOURS + ((240, 240, 240),), 20)
-            cv2.rectangle(img, (px(pxx), row(pz + ph_)), (px(pxx + pw_), row(pz)), bg, -1)
-            fg = (255, 255, 255) if sum(bg) < 380 else (10, 10, 10)
-            put_text_box(
-                img, random_word(rng, 2, 5), px(pxx), row(pz + ph_), px(pxx + pw_), row(pz + ph_ / 2), fg
-            )
-            cv2.circle(
-                img, (px(pxx + pw_ / 2), row(pz + ph_ / 4)), max(2, px(0.12)), _col(rng, CAR_COLOURS, 20), -1
-            )
-    # drainpipe
-    if rng.random() < 0.6:
-        dx = px(rng.choice([0.25, width_m - 0.25]))
-        pipe = _col(rng, ((80, 80, 80), (60, 70, 90), (150, 150, 150)), 8)
-        cv2.line(img, (dx, 0), (dx, h), pipe, max(2, px(0.1)))
-        for yy in range(px(1.0), h, px(2.5)):
-            cv2.line(img, (dx - px(0.1), yy), (dx + px(0.1), yy), _shade(pipe, 0.6), 1)
-    # roof cornice with dentils
+    cv2.rectangle(img, (px(dcx - 0.15), row(2.75)), (px(dcx + 0.15), row(2.55)), (230, 230, 230), -1)
+    put_text_box(
+        img,
+        str(int(rng.integers(1, 200))),
+        px(dcx - 0.15),
+        row(2.75),
+        px(dcx + 0.15),
+        row(2.55),
+        (20, 20, 20),
+        cv2.FONT_HERSHEY_SIMPLEX,
+    )
+    return dcx
+
+
+def _plinth(img: np.ndarray, sheet: _Sheet, wall: Colour) -> None:
+    """A darker band along the foot of the wall."""
+    row = sheet.row
+    cv2.rectangle(img, (0, row(0.45)), (sheet.w, sheet.h), _shade(wall, 0.7), -1)
+    cv2.line(img, (0, row(0.45)), (sheet.w, row(0.45)), _shade(wall, 0.5), 1)
+
+
+def _posters(img: np.ndarray, rng: Rng, sheet: _Sheet, width_m: float) -> None:
+    """One or two lettered posters on the ground floor."""
+    px, row = sheet.px, sheet.row
+    for _ in range(int(rng.integers(1, 3))):
+        pw_, ph_ = rng.uniform(0.5, 0.9), rng.uniform(0.7, 1.2)
+        pxx = rng.uniform(0.2, max(0.3, width_m - pw_ - 0.2))
+        pz = rng.uniform(0.6, 1.2)
+        bg = _col(rng, CLOTH_COLOURS + ((240, 240, 240),), 20)
+        cv2.rectangle(img, (px(pxx), row(pz + ph_)), (px(pxx + pw_), row(pz)), bg, -1)
+        fg = (255, 255, 255) if sum(bg) < 380 else (10, 10, 10)
+        put_text_box(
+            img, random_word(rng, 2, 5), px(pxx), row(pz + ph_), px(pxx + pw_), row(pz + ph_ / 2), fg
+        )
+        cv2.circle(
+            img, (px(pxx + pw_ / 2), row(pz + ph_ / 4)), max(2, px(0.12)), _col(rng, CAR_COLOURS, 20), -1
+        )
+
+
+def _drainpipe(img: np.ndarray, rng: Rng, sheet: _Sheet, width_m: float) -> None:
+    """A drainpipe with brackets down one edge of the facade."""
+    px = sheet.px
+    dx = px(rng.choice([0.25, width_m - 0.25]))
+    pipe = _col(rng, ((80, 80, 80), (60, 70, 90), (150, 150, 150)), 8)
+    cv2.line(img, (dx, 0), (dx, sheet.h), pipe, max(2, px(0.1)))
+    for yy in range(px(1.0), sheet.h, px(2.5)):
+        cv2.line(img, (dx - px(0.1), yy), (dx + px(0.1), yy), _shade(pipe, 0.6), 1)
+
+
+def _roof_cornice(img: np.ndarray, rng: Rng, sheet: _Sheet, wall: Colour) -> None:
+    """The roof cornice along the top edge, with dentils under it more often than not."""
+    px, w = sheet.px, sheet.w
     top = max(2, px(rng.uniform(0.25, 0.45)))
     cv2.rectangle(img, (0, 0), (w, top), _shade(wall, rng.uniform(0.7, 1.2)), -1)
     if rng.random() < 0.6:
@@ -418,14 +584,22 @@ def facade(
         for xx in range(step // 2, w, step):
             cv2.rectangle(img, (xx, top), (xx + step // 2, top + max(2, step // 2)), _shade(wall, 0.8), -1)
     cv2.line(img, (0, top), (w, top), _shade(wall, 0.5), 1)
-    # weathering: darker towards the ground and streaks
+
+
+def _weathered(img: np.ndarray, rng: Rng, sheet: _Sheet) -> np.ndarray:
+    """Weathering: darker towards the ground, and vertical streaks."""
+    h, w = sheet.h, sheet.w
     grime = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None] ** 3 * -18.0
-    streaks = value_noise(rng, h, w, cell=max(2.0, 0.4 * ppm), octaves=1)
+    streaks = value_noise(rng, h, w, cell=max(2.0, 0.4 * sheet.ppm), octaves=1)
     streaks = cv2.resize(cv2.resize(streaks, (w, max(2, h // 12))), (w, h)) * 5.0
     return _add_tone(img, grime + streaks)
 
 
 # --------------------------------------------------------------------------------------- ground
+
+
+_WHITE_PAINT = (225, 228, 230)
+_YELLOW_PAINT = (60, 190, 225)
 
 
 def road(
@@ -442,18 +616,35 @@ def road(
     Row 0 is the left kerb for a driver travelling towards increasing columns; the right half
     carries that direction (right-hand traffic). ``zebra`` puts crossings at the (start, end).
     """
-    w = max(8, int(round(length_m * ppm)))
-    h = max(8, int(round(width_m * ppm)))
-
-    def px(m: float) -> int:
-        return int(round(m * ppm))
-
+    sheet = _Sheet(ppm, max(8, int(round(length_m * ppm))), max(8, int(round(width_m * ppm))))
     grey = rng.uniform(70, 100)
+    img = _asphalt(rng, sheet, grey)
+    _patches_and_cracks(img, rng, sheet, length_m, width_m, grey)
+    _manholes(img, rng, sheet, length_m, width_m)
+    lw = _centre_line(img, rng, sheet)
+    _parking_strips(img, sheet, parking_m, lw)
+    _zebra_crossings(img, sheet, parking_m, zebra)
+    for half in (0, 1):
+        if rng.random() < 0.6 and length_m > 16:
+            _lane_word(img, rng, sheet, half, length_m, parking_m)
+    return img
+
+
+def _asphalt(rng: Rng, sheet: _Sheet, grey: float) -> np.ndarray:
+    """Plain asphalt of brightness ``grey`` with blotchy and fine grain."""
+    h, w = sheet.h, sheet.w
     img = np.empty((h, w, 3), np.uint8)
     img[:] = (grey, grey, grey * 1.02)
-    tone = value_noise(rng, h, w, cell=4.0 * ppm) * 8.0 + rng.normal(0.0, 7.0, (h, w)).astype(np.float32)
-    img = _add_tone(img, tone)
-    # patches and cracks
+    blotches = value_noise(rng, h, w, cell=4.0 * sheet.ppm) * 8.0
+    tone = blotches + rng.normal(0.0, 7.0, (h, w)).astype(np.float32)
+    return _add_tone(img, tone)
+
+
+def _patches_and_cracks(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, length_m: float, width_m: float, grey: float
+) -> None:
+    """Repair patches (lighter or darker rectangles) and meandering cracks."""
+    px = sheet.px
     for _ in range(int(rng.integers(1, 5))):
         x0 = rng.uniform(0, length_m - 2)
         y0 = rng.uniform(0, width_m - 1)
@@ -464,9 +655,13 @@ def road(
         pts = [np.array([rng.uniform(0, length_m), rng.uniform(0, width_m)])]
         for _ in range(int(rng.integers(3, 8))):
             pts.append(pts[-1] + rng.normal(0, 0.4, 2))
-        arr = (np.array(pts) * ppm).astype(np.int32)
+        arr = (np.array(pts) * sheet.ppm).astype(np.int32)
         cv2.polylines(img, [arr], False, (grey * 0.45,) * 3, 1)
-    # manhole covers
+
+
+def _manholes(img: np.ndarray, rng: Rng, sheet: _Sheet, length_m: float, width_m: float) -> None:
+    """Up to two ribbed manhole covers."""
+    px = sheet.px
     for _ in range(int(rng.integers(0, 3))):
         c = (px(rng.uniform(1, length_m - 1)), px(rng.uniform(2.5, width_m - 2.5)))
         r = px(0.35)
@@ -474,10 +669,13 @@ def road(
         cv2.circle(img, c, r, (35, 35, 35), 1)
         for k in range(-r + 3, r - 2, 4):
             cv2.line(img, (c[0] + k, c[1] - r + 4), (c[0] + k, c[1] + r - 4), (80, 80, 85), 1)
-    white = (225, 228, 230)
-    yellow = (60, 190, 225)
-    mid = h // 2
-    centre = yellow if rng.random() < 0.3 else white
+
+
+def _centre_line(img: np.ndarray, rng: Rng, sheet: _Sheet) -> int:
+    """A dashed or solid double centre line, white or yellow; returns the line width in pixels."""
+    px, w = sheet.px, sheet.w
+    mid = sheet.h // 2
+    centre = _YELLOW_PAINT if rng.random() < 0.3 else _WHITE_PAINT
     lw = max(2, px(0.12))
     if rng.random() < 0.5:  # dashed centre line
         dash, gap = px(3.0), px(rng.uniform(3.0, 6.0))
@@ -486,13 +684,24 @@ def road(
     else:  # solid double
         cv2.rectangle(img, (0, mid - lw - 1), (w, mid - 1), centre, -1)
         cv2.rectangle(img, (0, mid + 1), (w, mid + lw + 1), centre, -1)
-    # parking strips: a thin line and bay ticks
+    return lw
+
+
+def _parking_strips(img: np.ndarray, sheet: _Sheet, parking_m: float, lw: int) -> None:
+    """Parking strips along both kerbs: a thin line and bay ticks."""
+    px, w, h = sheet.px, sheet.w, sheet.h
+    mid = h // 2
     for yl in (px(parking_m), h - px(parking_m)):
-        cv2.line(img, (0, yl), (w, yl), white, max(1, lw // 2))
+        cv2.line(img, (0, yl), (w, yl), _WHITE_PAINT, max(1, lw // 2))
         for x in range(px(1.0), w, px(6.0)):
             y_out = 0 if yl < mid else h
-            cv2.line(img, (x, yl), (x, y_out), white, 1)
-    # zebra crossings and stop lines at the ends
+            cv2.line(img, (x, yl), (x, y_out), _WHITE_PAINT, 1)
+
+
+def _zebra_crossings(img: np.ndarray, sheet: _Sheet, parking_m: float, zebra: tuple[bool, bool]) -> None:
+    """Zebra crossings at the (start, end) where ``zebra`` says, each with the stop line before it."""
+    px, w, h = sheet.px, sheet.w, sheet.h
+    mid = h // 2
     stripe = max(2, px(0.5))
     for end, on in zip((0, 1), zebra, strict=True):
         if not on:
@@ -500,36 +709,33 @@ def road(
         xa = px(0.6) if end == 0 else w - px(3.6)
         xb = xa + px(3.0)
         for y in range(px(parking_m * 0.5), h - px(parking_m * 0.5), 2 * stripe):
-            cv2.rectangle(img, (xa, y), (xb, y + stripe - 1), white, -1)
+            cv2.rectangle(img, (xa, y), (xb, y + stripe - 1), _WHITE_PAINT, -1)
         # stop line for the traffic arriving at this end
         if end == 1:
-            cv2.rectangle(img, (xa - px(1.2), mid), (xa - px(0.9), h - px(parking_m)), white, -1)
+            cv2.rectangle(img, (xa - px(1.2), mid), (xa - px(0.9), h - px(parking_m)), _WHITE_PAINT, -1)
         else:
-            cv2.rectangle(img, (xb + px(0.9), px(parking_m)), (xb + px(1.2), mid), white, -1)
-    # painted lane text / arrows, readable for the driver of each half
-    for half in (0, 1):
-        if rng.random() < 0.6 and length_m > 16:
-            word = str(
-                rng.choice(["BUS", "SLOW", "STOP", "KEEP", "TAXI", "30", "20", random_word(rng, 3, 4)])
-            )
-            tl = rng.uniform(4.0, max(4.5, length_m - 8.0))
-            lane0 = px(parking_m) + 2 if half == 0 else mid + 3
-            lane1 = mid - 3 if half == 0 else h - px(parking_m) - 2
-            tw_px = px(2.4)
-            canvas = np.zeros(
-                (lane1 - lane0, tw_px, 3), np.uint8
-            )  # text with its "up" along the travel direction
-            cv2.rectangle(canvas, (0, 0), (tw_px, lane1 - lane0), (0, 0, 0), -1)
-            # draw upright, then rotate so the top points along the lane's travel direction
-            up = np.zeros((tw_px, lane1 - lane0, 3), np.uint8)
-            put_text_box(up, word, 0, 0, up.shape[1], up.shape[0], white, cv2.FONT_HERSHEY_SIMPLEX, 0.15)
-            rot = np.rot90(up, k=-1 if half == 1 else 1)
-            x0 = px(tl)
-            region = img[lane0:lane1, x0 : x0 + rot.shape[1]]
-            rr = rot[: region.shape[0], : region.shape[1]]
-            m = rr.max(axis=2) > 100
-            region[m] = rr[m]
-    return img
+            cv2.rectangle(img, (xb + px(0.9), px(parking_m)), (xb + px(1.2), mid), _WHITE_PAINT, -1)
+
+
+def _lane_word(
+    img: np.ndarray, rng: Rng, sheet: _Sheet, half: int, length_m: float, parking_m: float
+) -> None:
+    """A word painted in one half's lane (0: row 0's side), readable for that lane's driver."""
+    px, h = sheet.px, sheet.h
+    mid = h // 2
+    word = str(rng.choice(["BUS", "SLOW", "STOP", "KEEP", "TAXI", "30", "20", random_word(rng, 3, 4)]))
+    tl = rng.uniform(4.0, max(4.5, length_m - 8.0))
+    lane0 = px(parking_m) + 2 if half == 0 else mid + 3
+    lane1 = mid - 3 if half == 0 else h - px(parking_m) - 2
+    # draw upright, then rotate so the top points along the lane's travel direction
+    up = np.zeros((px(2.4), lane1 - lane0, 3), np.uint8)
+    put_text_box(up, word, 0, 0, up.shape[1], up.shape[0], _WHITE_PAINT, cv2.FONT_HERSHEY_SIMPLEX, 0.15)
+    rot = np.rot90(up, k=-1 if half == 1 else 1)
+    x0 = px(tl)
+    region = img[lane0:lane1, x0 : x0 + rot.shape[1]]
+    rr = rot[: region.shape[0], : region.shape[1]]
+    m = rr.max(axis=2) > 100
+    region[m] = rr[m]
 
 
 def intersection(rng: Rng, size_m: float, ppm: float) -> np.ndarray:

@@ -636,96 +636,112 @@ class Town:
                 lap; no car or cyclist drives there (it would run into the camera).
         """
         rng = np.random.default_rng([self.seed, K_LAP, lap])
-        c = self.clutter
-        starts: list[np.ndarray] = []
-        dirs: list[np.ndarray] = []
-        lengths: list[float] = []
-        s0s: list[float] = []
-        speeds: list[float] = []
-        halves: list[tuple[float, float]] = []
-        b = QuadBuilder()
-
-        def add(start: np.ndarray, d: np.ndarray, length: float, s0: float, speed: float) -> int:
-            starts.append(start)
-            dirs.append(d)
-            lengths.append(length)
-            s0s.append(s0)
-            speeds.append(speed)
-            halves.append((0.5, 0.5))
-            return len(starts) - 1
-
-        if c > 0:
+        found = _MoverList()
+        if self.clutter > 0:
             for axis, idx in self.street_lines():
-                pos = (self.xs if axis == 0 else self.ys)[idx]
-                lo, hi = (self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1])
-                along = np.array([0.0, 1.0, 0.0]) if axis == 0 else np.array([1.0, 0.0, 0.0])
-                line_len = float(hi - lo)
                 for sgn in (1, -1):
-                    d = along * sgn
-                    r = right_of(d)
-                    origin = np.array([pos, lo, 0.0]) if axis == 0 else np.array([lo, pos, 0.0])
-                    if sgn < 0:
-                        origin = origin + along * line_len
-                    # parked cars along this direction's parking strip
-                    cross = self.ys if axis == 0 else self.xs
-                    for seg in range(len(cross) - 1):
-                        a = cross[seg] + (ROAD_HALF + 6.0 if seg > 0 else 3.0)
-                        e = cross[seg + 1] - (ROAD_HALF + 6.0 if seg < len(cross) - 2 else 3.0)
-                        s = a
-                        while s + 5.0 < e:
-                            if rng.random() < min(0.9, 0.45 * c):
-                                centre_s = s + 2.8 + rng.uniform(-0.3, 0.3)
-                                p = (
-                                    np.array([pos, centre_s, 0.0])
-                                    if axis == 0
-                                    else np.array([centre_s, pos, 0.0])
-                                ) + r * PARK_LANE
-                                k = add(p, d, 1.0, 0.0, 0.0)
-                                halves[k] = self._car(b, k, rng, lap)
-                            s += 6.0
-                    if (axis, idx, sgn) in camera_lanes:
-                        continue
-                    for _ in range(int(rng.poisson(line_len / 70.0 * c))):
-                        k = add(
-                            origin + r * DRIVE_LANE,
-                            d,
-                            line_len,
-                            float(rng.uniform(0, line_len)),
-                            float(rng.uniform(6.0, 11.0)),
-                        )
-                        halves[k] = self._car(b, k, rng, lap)
-                    for _ in range(int(rng.poisson(line_len / 200.0 * c))):
-                        k = add(
-                            origin + r * (ROAD_HALF - PARKING - 0.6),
-                            d,
-                            line_len,
-                            float(rng.uniform(0, line_len)),
-                            float(rng.uniform(3.5, 6.0)),
-                        )
-                        halves[k] = self._cyclist(b, k, rng, lap)
+                    self._lane_traffic(found, rng, lap, (axis, idx, sgn), camera_lanes)
             for si, side in enumerate(self.sides):
-                for _ in range(int(rng.poisson(side.length / 10.0 * c))):
-                    fwd = rng.random() < 0.5
-                    d = side.u if fwd else -side.u
-                    start = side.start + side.n * float(rng.uniform(0.7, 2.4))
-                    if not fwd:
-                        start = start + side.u * side.length
-                    speed = 0.0 if rng.random() < 0.2 else float(rng.uniform(0.8, 1.6))
-                    k = add(start, d, side.length, float(rng.uniform(0.5, side.length - 0.5)), speed)
-                    halves[k] = self._person(b, k, rng, (lap, si))
-        quads = b.build(static=False)
-        if not starts:
-            z = np.zeros((0, 3))
-            return Movers(z, z, np.zeros(0), np.zeros(0), np.zeros(0), quads, np.zeros((0, 2)))
-        return Movers(
-            np.array(starts),
-            np.array(dirs),
-            np.array(lengths),
-            np.array(s0s),
-            np.array(speeds),
-            quads,
-            np.array(halves, float),
-        )
+                self._pedestrians(found, rng, lap, si, side)
+        return found.movers()
+
+    def _lane_traffic(
+        self,
+        found: _MoverList,
+        rng: np.random.Generator,
+        lap: int,
+        lane: tuple[int, int, int],
+        camera_lanes: set[tuple[int, int, int]],
+    ) -> None:
+        """Parked cars, then (unless the camera drives there) cars and cyclists of one direction of a street.
+
+        ``lane`` is (axis, index, direction sign) as in :meth:`street_lines`.
+        """
+        axis, idx, sgn = lane
+        pos = (self.xs if axis == 0 else self.ys)[idx]
+        lo, hi = (self.ys[0], self.ys[-1]) if axis == 0 else (self.xs[0], self.xs[-1])
+        along = np.array([0.0, 1.0, 0.0]) if axis == 0 else np.array([1.0, 0.0, 0.0])
+        line_len = float(hi - lo)
+        d = along * sgn
+        r = right_of(d)
+        origin = np.array([pos, lo, 0.0]) if axis == 0 else np.array([lo, pos, 0.0])
+        if sgn < 0:
+            origin = origin + along * line_len
+        self._parked_cars(found, rng, lap, axis, pos, d, r)
+        if lane in camera_lanes:
+            return
+        self._through_traffic(found, rng, lap, origin, d, r, line_len)
+
+    def _parked_cars(
+        self,
+        found: _MoverList,
+        rng: np.random.Generator,
+        lap: int,
+        axis: int,
+        pos: float,
+        d: np.ndarray,
+        r: np.ndarray,
+    ) -> None:
+        """Cars parked along the parking strip on the right of direction ``d``, block by block."""
+        cross = self.ys if axis == 0 else self.xs
+        for seg in range(len(cross) - 1):
+            a = cross[seg] + (ROAD_HALF + 6.0 if seg > 0 else 3.0)
+            e = cross[seg + 1] - (ROAD_HALF + 6.0 if seg < len(cross) - 2 else 3.0)
+            s = a
+            while s + 5.0 < e:
+                if rng.random() < min(0.9, 0.45 * self.clutter):
+                    centre_s = s + 2.8 + rng.uniform(-0.3, 0.3)
+                    p = (
+                        np.array([pos, centre_s, 0.0]) if axis == 0 else np.array([centre_s, pos, 0.0])
+                    ) + r * PARK_LANE
+                    k = found.add(p, d, 1.0, 0.0, 0.0)
+                    found.halves[k] = self._car(found.quads, k, rng, lap)
+                s += 6.0
+
+    def _through_traffic(
+        self,
+        found: _MoverList,
+        rng: np.random.Generator,
+        lap: int,
+        origin: np.ndarray,
+        d: np.ndarray,
+        r: np.ndarray,
+        line_len: float,
+    ) -> None:
+        """Cars in the driving lane and cyclists beside the parking strip, along direction ``d``."""
+        c = self.clutter
+        for _ in range(int(rng.poisson(line_len / 70.0 * c))):
+            k = found.add(
+                origin + r * DRIVE_LANE,
+                d,
+                line_len,
+                float(rng.uniform(0, line_len)),
+                float(rng.uniform(6.0, 11.0)),
+            )
+            found.halves[k] = self._car(found.quads, k, rng, lap)
+        for _ in range(int(rng.poisson(line_len / 200.0 * c))):
+            k = found.add(
+                origin + r * (ROAD_HALF - PARKING - 0.6),
+                d,
+                line_len,
+                float(rng.uniform(0, line_len)),
+                float(rng.uniform(3.5, 6.0)),
+            )
+            found.halves[k] = self._cyclist(found.quads, k, rng, lap)
+
+    def _pedestrians(
+        self, found: _MoverList, rng: np.random.Generator, lap: int, si: int, side: Side
+    ) -> None:
+        """People walking (or standing) either way along the sidewalk of block side ``si``."""
+        for _ in range(int(rng.poisson(side.length / 10.0 * self.clutter))):
+            fwd = rng.random() < 0.5
+            d = side.u if fwd else -side.u
+            start = side.start + side.n * float(rng.uniform(0.7, 2.4))
+            if not fwd:
+                start = start + side.u * side.length
+            speed = 0.0 if rng.random() < 0.2 else float(rng.uniform(0.8, 1.6))
+            k = found.add(start, d, side.length, float(rng.uniform(0.5, side.length - 0.5)), speed)
+            found.halves[k] = self._person(found.quads, k, rng, (lap, si))
 
     def _car(self, b: QuadBuilder, k: int, rng: np.random.Generator, lap: int) -> tuple[float, float]:
         L = float(rng.uniform(3.9, 4.8))
@@ -797,72 +813,151 @@ class Town:
     def lap_decals(self, light: Lighting) -> Decals:
         """Cast shadows of buildings (on the ground and the facades across the street) and props."""
         s = light.sun
-        empty = Decals.empty()
         if light.overcast or s[2] <= 0.05:
-            return empty
+            return Decals.empty()
+        found = _DecalList()
+        self._building_shadows(found, light)
+        self._prop_shadows(found, light)
+        return found.decals()
+
+    def _building_shadows(self, found: _DecalList, light: Lighting) -> None:
+        """Shadows of the building fronts turned away from the sun: on the ground and across the street."""
+        s = light.sun
         ground_n = np.array([0.0, 0.0, 1.0])
-        b = QuadBuilder()
-        normals: list[np.ndarray] = []
-        alpha: list[bool] = []
-        gains: list[np.ndarray] = []
-
-        def project(point: np.ndarray, q0: np.ndarray, m: np.ndarray) -> np.ndarray:
-            return point - s * (float((point - q0) @ m) / float(s @ m))
-
-        for top_left, u, w, h, n, across in self._casters:
+        for caster in self._casters:
+            top_left, _, _, _, n, across = caster
             if float(n @ s) >= 0.0:  # facing the sun: its shadow falls behind it, out of sight
                 continue
-            receivers = [(np.zeros(3), ground_n)]
+            _wall_shadow(found, light, caster, np.zeros(3), ground_n, on_facade=False)
             if across:
-                receivers.append((top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK, -n))
-            for q0, m in receivers:
-                if float(s @ m) <= 1e-3:
-                    continue
-                tl = project(top_left, q0, m)
-                if m is not ground_n and tl[2] <= 0.0 and project(top_left + u * w, q0, m)[2] <= 0.0:
-                    continue  # the shadow does not reach the facade across the street
-                uu = u - s * (float(u @ m) / float(s @ m))
-                vv = -UP - s * (float(-UP @ m) / float(s @ m))
-                # a whole-quad (opaque) decal: texture id 0 is never sampled for its colour
-                b.add(tl, uu, vv, w, h, 0, 1.0, 0)
-                normals.append(m)
-                alpha.append(False)
-                gains.append(light.shadow_gain(m))
+                q0 = top_left - np.array([0, 0, top_left[2]]) + n * 2 * SETBACK
+                _wall_shadow(found, light, caster, q0, -n, on_facade=True)
+
+    def _prop_shadows(self, found: _DecalList, light: Lighting) -> None:
+        """Ground shadows of trunks, canopies and poles (canopies keep their cut-out shape)."""
+        s = light.sun
+        ground_n = np.array([0.0, 0.0, 1.0])
         pc = self.prop_casters
-        if len(pc):
-            pn = pc.normals()
-            facing = np.abs(pn @ s)
-            for qi in range(len(pc)):
-                if facing[qi] < 0.15:  # nearly edge-on to the sun: a sliver of shadow
-                    continue
-                # of a canopy's crossed pair keep the quad facing the sun most
-                if (
-                    pc.lit[qi] == LIT_FOLIAGE
-                    and qi + 1 < len(pc)
-                    and pc.lit[qi + 1] == LIT_FOLIAGE
-                    and facing[qi + 1] > facing[qi]
-                ):
-                    continue
-                if (
-                    pc.lit[qi] == LIT_FOLIAGE
-                    and qi > 0
-                    and pc.lit[qi - 1] == LIT_FOLIAGE
-                    and facing[qi - 1] >= facing[qi]
-                ):
-                    continue
-                o = pc.origin[qi]
-                oo = o - s * (o[2] / s[2])
-                uu = pc.u[qi] - s * (pc.u[qi][2] / s[2])
-                vv = pc.v[qi] - s * (pc.v[qi][2] / s[2])
-                b._rows.append((oo, uu, vv, tuple(pc.rect[qi]), int(pc.tex[qi]), 0, False, 0, -1, 0, -1))
-                normals.append(ground_n)
-                alpha.append(bool(pc.lit[qi] == LIT_FOLIAGE))
-                gains.append(light.shadow_gain(ground_n))
-        quads = b.build(static=False)
+        if not len(pc):
+            return
+        pn = pc.normals()
+        facing = np.abs(pn @ s)
+        for qi in range(len(pc)):
+            if facing[qi] < 0.15:  # nearly edge-on to the sun: a sliver of shadow
+                continue
+            if _weaker_of_canopy_pair(pc.lit, facing, qi):
+                continue
+            o = pc.origin[qi]
+            oo = o - s * (o[2] / s[2])
+            uu = pc.u[qi] - s * (pc.u[qi][2] / s[2])
+            vv = pc.v[qi] - s * (pc.v[qi][2] / s[2])
+            found.quads._rows.append(
+                (oo, uu, vv, tuple(pc.rect[qi]), int(pc.tex[qi]), 0, False, 0, -1, 0, -1)
+            )
+            found.keep(ground_n, bool(pc.lit[qi] == LIT_FOLIAGE), light.shadow_gain(ground_n))
+
+
+@dataclass
+class _MoverList:
+    """The movers of one lap while they are placed: paths, footprints and quads (see :class:`Movers`)."""
+
+    quads: QuadBuilder = field(default_factory=QuadBuilder)
+    starts: list[np.ndarray] = field(default_factory=list)
+    dirs: list[np.ndarray] = field(default_factory=list)
+    lengths: list[float] = field(default_factory=list)
+    s0s: list[float] = field(default_factory=list)
+    speeds: list[float] = field(default_factory=list)
+    halves: list[tuple[float, float]] = field(default_factory=list)
+
+    def add(self, start: np.ndarray, d: np.ndarray, length: float, s0: float, speed: float) -> int:
+        """Add an object's path; returns its index (its footprint ``halves[k]`` is set by the caller)."""
+        self.starts.append(start)
+        self.dirs.append(d)
+        self.lengths.append(length)
+        self.s0s.append(s0)
+        self.speeds.append(speed)
+        self.halves.append((0.5, 0.5))
+        return len(self.starts) - 1
+
+    def movers(self) -> Movers:
+        """The collected movers as arrays."""
+        quads = self.quads.build(static=False)
+        if not self.starts:
+            z = np.zeros((0, 3))
+            return Movers(z, z, np.zeros(0), np.zeros(0), np.zeros(0), quads, np.zeros((0, 2)))
+        return Movers(
+            np.array(self.starts),
+            np.array(self.dirs),
+            np.array(self.lengths),
+            np.array(self.s0s),
+            np.array(self.speeds),
+            quads,
+            np.array(self.halves, float),
+        )
+
+
+@dataclass
+class _DecalList:
+    """The cast shadows of one lap while they are made (see :class:`Decals`)."""
+
+    quads: QuadBuilder = field(default_factory=QuadBuilder)
+    normals: list[np.ndarray] = field(default_factory=list)
+    alpha: list[bool] = field(default_factory=list)
+    gains: list[np.ndarray] = field(default_factory=list)
+
+    def keep(self, normal: np.ndarray, alpha: bool, gain: np.ndarray) -> None:
+        """Record the receiver normal, cut-out flag and gain of the quad just added to ``quads``."""
+        self.normals.append(normal)
+        self.alpha.append(alpha)
+        self.gains.append(gain)
+
+    def decals(self) -> Decals:
+        """The collected shadows with their bounding spheres (:meth:`Decals.empty` when none)."""
+        quads = self.quads.build(static=False)
         if not len(quads):
-            return empty
+            return Decals.empty()
         centre, radius = quads.spheres()
-        return Decals(quads, np.array(normals), np.array(gains), np.array(alpha), centre, radius)
+        return Decals(
+            quads, np.array(self.normals), np.array(self.gains), np.array(self.alpha), centre, radius
+        )
+
+
+def _along_sun(point: np.ndarray, sun: np.ndarray, q0: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Where the sun ray through ``point`` meets the plane through ``q0`` with normal ``m``."""
+    return point - sun * (float((point - q0) @ m) / float(sun @ m))
+
+
+def _wall_shadow(
+    found: _DecalList,
+    light: Lighting,
+    caster: tuple[np.ndarray, np.ndarray, float, float, np.ndarray, bool],
+    q0: np.ndarray,
+    m: np.ndarray,
+    *,
+    on_facade: bool,
+) -> None:
+    """The shadow of a building front (a ``Town._casters`` entry) on the plane through q0 with normal m."""
+    s = light.sun
+    top_left, u, w, h, _, _ = caster
+    if float(s @ m) <= 1e-3:
+        return
+    tl = _along_sun(top_left, s, q0, m)
+    if on_facade and tl[2] <= 0.0 and _along_sun(top_left + u * w, s, q0, m)[2] <= 0.0:
+        return  # the shadow does not reach the facade across the street
+    uu = u - s * (float(u @ m) / float(s @ m))
+    vv = -UP - s * (float(-UP @ m) / float(s @ m))
+    # a whole-quad (opaque) decal: texture id 0 is never sampled for its colour
+    found.quads.add(tl, uu, vv, w, h, 0, 1.0, 0)
+    found.keep(m, False, light.shadow_gain(m))
+
+
+def _weaker_of_canopy_pair(lit: np.ndarray, facing: np.ndarray, qi: int) -> bool:
+    """Whether quad ``qi`` is the canopy quad of a crossed pair that faces the sun less (no shadow)."""
+    if lit[qi] != LIT_FOLIAGE:
+        return False
+    if qi + 1 < len(lit) and lit[qi + 1] == LIT_FOLIAGE and facing[qi + 1] > facing[qi]:
+        return True
+    return bool(qi > 0 and lit[qi - 1] == LIT_FOLIAGE and facing[qi - 1] >= facing[qi])
 
 
 def _sign_back_of_plate(rng: np.random.Generator, size: float, ppm: float) -> np.ndarray:

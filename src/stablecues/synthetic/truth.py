@@ -28,7 +28,8 @@ from typing import Literal
 
 import numpy as np
 
-from ...errors import ConfigError, InputError, check_array
+from ..errors import ConfigError, InputError, check_array
+from ..groundtruth import loops_from_poses
 
 Opposite = Literal["never", "covisible", "always"]
 
@@ -106,8 +107,6 @@ def loop_truth(
     Raises:
         InputError: shapes disagree, or visibility is missing for "covisible".
     """
-    from ...groundtruth import loops_from_poses
-
     config.validate()
     positions = np.asarray(positions, float)
     headings = np.asarray(headings, float)
