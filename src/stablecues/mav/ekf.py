@@ -3,8 +3,8 @@
 The filter (Sola, "Quaternion kinematics for the error-state Kalman filter", 2017, sections 5-7)
 keeps a nominal state
 
-    p (3, ENU m), v (3, ENU m/s), q (body FRD -> ENU quaternion), b_a (3, m/s^2 accelerometer bias),
-    b_g (3, rad/s gyro bias), b_baro (1, m barometer offset)
+    p (3, ENU m), v (3, ENU m/s), q (body FRD -> ENU quaternion, (x, y, z, w)),
+    b_a (3, m/s^2 accelerometer bias), b_g (3, rad/s gyro bias), b_baro (1, m barometer offset)
 
 and a 16-dimensional error state ``[dp, dv, dtheta, db_a, db_g, db_baro]`` with the attitude
 error ``dtheta`` in the body frame (``q_true = q * Exp(dtheta)``).
@@ -19,6 +19,12 @@ error ``dtheta`` in the body frame (``q_true = q * Exp(dtheta)``).
 * **Magnetic heading**: tilt-compensated with the current roll/pitch, plus the declination.
 * Every update passes an innovation gate (``gate_sigma`` standard deviations per component, as
   EKF3's ``*_I_GATE``); GNSS is re-anchored when it has been rejected for ``gnss_reset_s``.
+* **IMU gaps** longer than ``max_imu_gap_s`` are not integrated: attitude restarts from
+  accelerometer and compass, and position re-anchors on the next GNSS fix.
+
+:class:`NavigationFilter` holds the state and has one method per step (predict, an update per
+sensor, re-anchor, attitude restart); it walks the log's events (:class:`Event`: IMU, GNSS,
+barometer, compass) in time order. :func:`run_ekf` runs it over a whole log.
 
 Initialisation: at the first GNSS fix of at least ``min_fix`` (3 = 3D), position = that fix
 (the ENU origin), velocity = its GNSS velocity, roll/pitch from the mean accelerometer and yaw
@@ -32,16 +38,26 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 
 from ..errors import InputError
+from ..geometry.rotations import (
+    euler_zyx_to_quat,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_normalize,
+    quat_to_euler_zyx,
+    quat_to_matrix,
+)
 from . import geo
-from .flightlog import FlightLog, NavSolution
+from .flightlog import BaroSeries, FlightLog, GnssFixes, MagSeries, NavSolution
 
 logger = logging.getLogger(__name__)
 
 GRAVITY = 9.80665  # m/s^2, standard gravity
+_G_VEC = np.array([0.0, 0.0, -GRAVITY])
 
 _N = 16
 _P, _V, _TH, _BA, _BG, _BB = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), 15
@@ -152,38 +168,6 @@ def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) / angle * k + (1.0 - np.cos(angle)) / angle**2 * (k @ k)
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
-
-
-def _qexp(v: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-12:
-        return np.array([1.0, 0.5 * v[0], 0.5 * v[1], 0.5 * v[2]])
-    s = np.sin(0.5 * angle) / angle
-    return np.array([np.cos(0.5 * angle), s * v[0], s * v[1], s * v[2]])
-
-
 def _ned_euler(r_enu: np.ndarray) -> tuple[float, float, float]:
     """Roll, pitch, yaw (NED, radians) of a body->ENU rotation matrix."""
     r = geo.R_ENU_NED.T @ r_enu  # body -> NED
@@ -191,11 +175,6 @@ def _ned_euler(r_enu: np.ndarray) -> tuple[float, float, float]:
     pitch = float(-np.arcsin(np.clip(r[2, 0], -1.0, 1.0)))
     yaw = float(np.arctan2(r[1, 0], r[0, 0]))
     return roll, pitch, yaw
-
-
-def _r_enu_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    q_ned = geo.euler_to_quat(np.array(roll), np.array(pitch), np.array(yaw))
-    return geo.R_ENU_NED @ _quat_matrix(np.asarray(q_ned, dtype=np.float64).reshape(4))
 
 
 def mag_heading(field_body: np.ndarray, roll: float, pitch: float, declination: float) -> float:
@@ -293,53 +272,110 @@ def _declination(log: FlightLog, config: EkfConfig) -> float:
     return float(value) if value is not None and np.isfinite(value) else 0.0
 
 
-def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolution, EkfReport]:
-    """Fuse a flight log's IMU, GNSS, barometer and magnetometer into a navigation solution.
+class Event(IntEnum):
+    """The kinds of event on the filter's time line; events at one time run in this order."""
 
-    Args:
-        log: a flight log with IMU and GNSS (barometer and magnetometer are optional).
-        config: filter settings; :class:`EkfConfig` defaults when None.
+    IMU = 0
+    GNSS = 1
+    BARO = 2
+    MAG = 3
 
-    Returns:
-        The solution at every IMU sample from the initialisation on (ENU about the first
-        usable GNSS fix; ``name`` "stablecues-ekf"), and an :class:`EkfReport`.
 
-    Raises:
-        InputError: the log has no IMU samples or no GNSS fix of at least ``config.min_fix``.
+@dataclass(frozen=True, eq=False)
+class _FlightInputs:
+    """A log's measurements as the filter uses them.
+
+    Attributes:
+        imu_t, imu_gyro, imu_acc: IMU samples sorted by time, block-averaged to about
+            ``predict_rate_hz``: (N,), (N, 3) rad/s, (N, 3) m/s^2.
+        dt_raw: median interval of the raw IMU samples, s.
+        acc_sigma, gyro_sigma: IMU noise measured from the raw samples (m/s^2, rad/s).
+        gnss: the usable fixes (fix type >= ``min_fix``, finite position).
+        gnss_t: (M,) fix times minus the GNSS lag, s.
+        gnss_pos, gnss_vel: (M, 3) ENU metres about ``origin`` and ENU m/s (NaN where unknown).
+        baro: barometer samples, None when switched off.
+        mag: compass samples.
+        origin: the first usable fix (lat deg, lon deg, alt m).
+        lag: GNSS lag, s.
+        declination: magnetic declination, radians east.
+        use_mag: whether the compass is used.
     """
-    cfg = config or EkfConfig()
-    imu = log.imu
-    good = np.flatnonzero(
-        (log.gnss.fix >= cfg.min_fix)
-        & np.isfinite(log.gnss.lat)
-        & np.isfinite(log.gnss.lon)
-        & np.isfinite(log.gnss.alt)
-    )
-    if len(imu) < 2:
-        raise InputError(f"{log.path}: the EKF needs IMU samples, the log has {len(imu)}")
-    if len(good) == 0:
-        raise InputError(f"{log.path}: the EKF needs a GNSS fix of type >= {cfg.min_fix}, the log has none")
-    gnss = log.gnss.subset(good)
-    lag = _gnss_lag(log, cfg)
-    decl = _declination(log, cfg)
-    origin = (float(gnss.lat[0]), float(gnss.lon[0]), float(gnss.alt[0]))
-    g_pos = geo.geodetic_to_enu(gnss.lat, gnss.lon, gnss.alt, origin)
-    g_vel = gnss.vel_ned @ geo.R_ENU_NED.T  # NaN stays NaN
-    g_t = gnss.t - lag
 
-    imu_order = np.argsort(imu.t, kind="stable")
-    i_t, i_gyro, i_acc = imu.t[imu_order], imu.gyro[imu_order], imu.accel[imu_order]
-    # noise of the raw samples, then (for fast IMUs) block means at about predict_rate_hz
-    acc_sigma, gyro_sigma = imu_noise_from_log(i_t, i_gyro, i_acc)
-    dt_raw = float(np.median(np.diff(i_t)))
-    i_t, i_gyro, i_acc = _block_means(i_t, i_gyro, i_acc, dt_raw, cfg.predict_rate_hz)
-    t_start = max(float(g_t[0]), float(i_t[0]))
+    imu_t: np.ndarray
+    imu_gyro: np.ndarray
+    imu_acc: np.ndarray
+    dt_raw: float
+    acc_sigma: float
+    gyro_sigma: float
+    gnss: GnssFixes
+    gnss_t: np.ndarray
+    gnss_pos: np.ndarray
+    gnss_vel: np.ndarray
+    baro: BaroSeries | None
+    mag: MagSeries
+    origin: tuple[float, float, float]
+    lag: float
+    declination: float
+    use_mag: bool
 
-    mag = log.mag
+    @classmethod
+    def from_log(cls, log: FlightLog, cfg: EkfConfig) -> _FlightInputs:
+        """Select, sort and convert the log's measurements.
 
-    def level_attitude(w0: float, w1: float) -> tuple[np.ndarray, float]:
-        """Attitude from the mean accelerometer (roll, pitch) and magnetometer (yaw) in [w0, w1];
-        returns the quaternion and the yaw sigma (pi when no heading source)."""
+        Raises:
+            InputError: no IMU samples or no GNSS fix of at least ``cfg.min_fix``.
+        """
+        imu = log.imu
+        good = np.flatnonzero(
+            (log.gnss.fix >= cfg.min_fix)
+            & np.isfinite(log.gnss.lat)
+            & np.isfinite(log.gnss.lon)
+            & np.isfinite(log.gnss.alt)
+        )
+        if len(imu) < 2:
+            raise InputError(f"{log.path}: the EKF needs IMU samples, the log has {len(imu)}")
+        if len(good) == 0:
+            raise InputError(
+                f"{log.path}: the EKF needs a GNSS fix of type >= {cfg.min_fix}, the log has none"
+            )
+        gnss = log.gnss.subset(good)
+        lag = _gnss_lag(log, cfg)
+        origin = (float(gnss.lat[0]), float(gnss.lon[0]), float(gnss.alt[0]))
+        order = np.argsort(imu.t, kind="stable")
+        i_t, i_gyro, i_acc = imu.t[order], imu.gyro[order], imu.accel[order]
+        # noise of the raw samples, then (for fast IMUs) block means at about predict_rate_hz
+        acc_sigma, gyro_sigma = imu_noise_from_log(i_t, i_gyro, i_acc)
+        dt_raw = float(np.median(np.diff(i_t)))
+        i_t, i_gyro, i_acc = _block_means(i_t, i_gyro, i_acc, dt_raw, cfg.predict_rate_hz)
+        return cls(
+            imu_t=i_t,
+            imu_gyro=i_gyro,
+            imu_acc=i_acc,
+            dt_raw=dt_raw,
+            acc_sigma=acc_sigma,
+            gyro_sigma=gyro_sigma,
+            gnss=gnss,
+            gnss_t=gnss.t - lag,
+            gnss_pos=geo.geodetic_to_enu(gnss.lat, gnss.lon, gnss.alt, origin),
+            gnss_vel=gnss.vel_ned @ geo.R_ENU_NED.T,  # NaN stays NaN
+            baro=log.baro if cfg.use_baro else None,
+            mag=log.mag,
+            origin=origin,
+            lag=lag,
+            declination=_declination(log, cfg),
+            use_mag=cfg.use_mag,
+        )
+
+    def level_attitude(self, w0: float, w1: float) -> tuple[np.ndarray, float]:
+        """Attitude from the mean accelerometer (roll, pitch) and compass (yaw) in ``[w0, w1]``.
+
+        Without a compass reading the heading comes from the GNSS course when the vehicle moves
+        faster than 3 m/s, else it is 0 with a sigma of pi.
+
+        Returns:
+            The body->ENU quaternion (x, y, z, w) and the yaw sigma in radians.
+        """
+        i_t, i_acc, mag = self.imu_t, self.imu_acc, self.mag
         sel = (i_t >= w0) & (i_t <= w1)
         acc = (
             i_acc[sel].mean(axis=0)
@@ -349,264 +385,352 @@ def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolutio
         roll = float(np.arctan2(-acc[1], -acc[2]))
         pitch = float(np.arctan2(acc[0], np.hypot(acc[1], acc[2])))
         yaw, yaw_sigma = 0.0, float(np.pi)
-        if len(mag) and cfg.use_mag:
+        if len(mag) and self.use_mag:
             msel = (mag.t >= w0 - 1.0) & (mag.t <= w1 + 1.0)
             msel &= np.linalg.norm(mag.field, axis=1) > 0  # an all-zero field: no compass fitted
             if np.any(msel):
-                yaw, yaw_sigma = mag_heading(mag.field[msel].mean(axis=0), roll, pitch, decl), 0.3
+                yaw, yaw_sigma = mag_heading(mag.field[msel].mean(axis=0), roll, pitch, self.declination), 0.3
         if yaw_sigma >= np.pi:
-            kk = min(int(np.searchsorted(g_t, w0)), len(g_t) - 1)
-            vn = gnss.vel_ned[kk]
+            kk = min(int(np.searchsorted(self.gnss_t, w0)), len(self.gnss_t) - 1)
+            vn = self.gnss.vel_ned[kk]
             if np.all(np.isfinite(vn[:2])) and np.hypot(vn[0], vn[1]) > 3.0:
                 yaw, yaw_sigma = float(np.arctan2(vn[1], vn[0])), 0.3
-        return geo.matrix_to_quat(_r_enu_from_euler(roll, pitch, yaw)), yaw_sigma
+        return geo.ned_to_enu_quat(euler_zyx_to_quat(roll, pitch, yaw)), yaw_sigma
 
-    q, yaw_sigma = level_attitude(t_start - 0.5 * cfg.init_window_s, t_start + 0.5 * cfg.init_window_s)
-    k0 = min(int(np.searchsorted(g_t, t_start)), len(g_t) - 1)
+    def timeline(self, cfg: EkfConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every event in time order: (times, :class:`Event` values as int8, measurement index).
 
-    p = g_pos[k0].copy()
-    v = np.nan_to_num(g_vel[k0].copy())
-    ba = np.zeros(3)
-    bg = np.zeros(3)
-    bb = 0.0
-    baro = log.baro if cfg.use_baro else None
-    if baro is not None and len(baro):
-        bb = float(np.interp(t_start, baro.t, baro.alt)) - p[2]
+        Barometer and compass samples are thinned to ``cfg.max_aiding_rate_hz``.
+        """
+        ev_t = [self.imu_t, self.gnss_t]
+        ev_k = [np.full(len(self.imu_t), Event.IMU, np.int8), np.full(len(self.gnss_t), Event.GNSS, np.int8)]
+        ev_i = [np.arange(len(self.imu_t)), np.arange(len(self.gnss_t))]
+        for kind, series in ((Event.BARO, self.baro), (Event.MAG, self.mag if self.use_mag else None)):
+            if series is not None and len(series):
+                keep = _thin(series.t, cfg.max_aiding_rate_hz)
+                ev_t.append(series.t[keep])
+                ev_k.append(np.full(len(keep), kind, np.int8))
+                ev_i.append(keep)
+        all_t = np.concatenate(ev_t)
+        all_k = np.concatenate(ev_k)
+        all_i = np.concatenate(ev_i)
+        order = np.lexsort((all_k, all_t))
+        return all_t[order], all_k[order], all_i[order]
 
-    P = np.zeros((_N, _N))
-    h0 = gnss.h_acc[k0] if np.isfinite(gnss.h_acc[k0]) else 0.0
-    v0 = gnss.v_acc[k0] if np.isfinite(gnss.v_acc[k0]) else 0.0
-    P[0, 0] = P[1, 1] = max(h0, cfg.gnss_pos_noise) ** 2
-    P[2, 2] = max(v0, cfg.gnss_alt_noise) ** 2
-    P[3:6, 3:6] = np.eye(3) * 0.5**2
-    P[6, 6] = P[7, 7] = 0.05**2
-    P[8, 8] = yaw_sigma**2  # body z ~ down, so this mostly covers heading
-    P[9:12, 9:12] = np.eye(3) * 0.2**2
-    P[12:15, 12:15] = np.eye(3) * 0.02**2
-    P[15, 15] = 0.5**2
 
-    # --- events: IMU samples (kind 0), GNSS (1), baro (2), mag (3), in time order
-    ev_t = [i_t, g_t]
-    ev_k = [np.zeros(len(i_t), np.int8), np.ones(len(g_t), np.int8)]
-    ev_i = [np.arange(len(i_t)), np.arange(len(g_t))]
-    if baro is not None and len(baro):
-        keep = _thin(baro.t, cfg.max_aiding_rate_hz)
-        ev_t.append(baro.t[keep])
-        ev_k.append(np.full(len(keep), 2, np.int8))
-        ev_i.append(keep)
-    if cfg.use_mag and len(mag):
-        keep = _thin(mag.t, cfg.max_aiding_rate_hz)
-        ev_t.append(mag.t[keep])
-        ev_k.append(np.full(len(keep), 3, np.int8))
-        ev_i.append(keep)
-    all_t = np.concatenate(ev_t)
-    all_k = np.concatenate(ev_k)
-    all_i = np.concatenate(ev_i)
-    order = np.lexsort((all_k, all_t))
-    all_t, all_k, all_i = all_t[order], all_k[order], all_i[order]
-    begin = int(np.searchsorted(all_t, t_start, side="left"))
+class NavigationFilter:
+    """The error-state EKF of this module (see the module's description), one event at a time.
 
-    accepted = {"gnss_pos": 0, "gnss_vel": 0, "baro": 0, "mag": 0}
-    rejected = dict.fromkeys(accepted, 0)
-    resets = 0
-    gate2 = cfg.gate_sigma**2
-    g_vec = np.array([0.0, 0.0, -GRAVITY])
-    eye16 = np.eye(_N)
-    q_acc = (cfg.accel_noise if cfg.accel_noise is not None else acc_sigma) ** 2
-    q_gyro = (cfg.gyro_noise if cfg.gyro_noise is not None else gyro_sigma) ** 2
-    q_ab = cfg.accel_bias_noise**2
-    q_gb = cfg.gyro_bias_noise**2
-    q_bb = cfg.baro_bias_noise**2
+    :func:`run_ekf` is ``NavigationFilter(log, config).run()``. The steps are public for tests
+    and for callers that drive the filter themselves: :meth:`predict` (IMU propagation), one
+    update per sensor (:meth:`update_gnss`, :meth:`update_baro`, :meth:`update_mag`, each taking
+    the index of the measurement in the log's prepared series), :meth:`reanchor` (position and
+    velocity jump to a GNSS fix) and :meth:`restart_attitude` (after an IMU gap).
 
-    t_now = t_start
-    t_imu = t_start
-    j_imu = max(int(np.searchsorted(i_t, t_start, side="right")) - 1, 0)
-    a_m, w_m = i_acc[j_imu], i_gyro[j_imu]
-    last_gnss_ok = t_start
-    acc_h = 0.0  # horizontal acceleration magnitude, for the GNSS noise scaling
+    State: ``p`` (3,) ENU m, ``v`` (3,) ENU m/s, ``q`` (4,) body->ENU quaternion (x, y, z, w),
+    ``ba`` (3,) m/s^2, ``bg`` (3,) rad/s, ``bb`` barometer offset m, ``P`` (16, 16) covariance of
+    the error state ``[dp, dv, dtheta, db_a, db_g, db_baro]``. ``p``, ``v`` and ``q`` are
+    replaced, never changed in place, so recorded states stay as they were.
+    """
 
-    out_t: list[float] = []
-    out_p: list[np.ndarray] = []
-    out_v: list[np.ndarray] = []
-    out_q: list[np.ndarray] = []
-    out_s: list[np.ndarray] = []
+    def __init__(self, log: FlightLog, config: EkfConfig | None = None) -> None:
+        """Prepare the log's measurements and initialise the state at the first GNSS fix.
 
-    def predict(dt: float) -> None:
-        nonlocal p, v, q, P, acc_h
+        Raises:
+            InputError: no IMU samples or no GNSS fix of at least ``config.min_fix``.
+        """
+        self.config = cfg = config or EkfConfig()
+        self.name = log.path.name
+        self.inputs = inp = _FlightInputs.from_log(log, cfg)
+        self.t_start = max(float(inp.gnss_t[0]), float(inp.imu_t[0]))
+        self.q_acc = (cfg.accel_noise if cfg.accel_noise is not None else inp.acc_sigma) ** 2
+        self.q_gyro = (cfg.gyro_noise if cfg.gyro_noise is not None else inp.gyro_sigma) ** 2
+        self.accepted = {"gnss_pos": 0, "gnss_vel": 0, "baro": 0, "mag": 0}
+        self.rejected = dict.fromkeys(self.accepted, 0)
+        self.resets = 0
+        self.t_now = self.t_imu = self.last_gnss_ok = self.t_start
+        j_imu = max(int(np.searchsorted(inp.imu_t, self.t_start, side="right")) - 1, 0)
+        self.a_m, self.w_m = inp.imu_acc[j_imu], inp.imu_gyro[j_imu]
+        self.acc_h = 0.0  # horizontal acceleration magnitude, for the GNSS noise scaling
+        self.need_anchor = False  # after an IMU gap, until the next GNSS fix
+        self._init_state()
+        # the state at every IMU sample: time, position, velocity, quaternion, position sigma
+        self._out_t: list[float] = []
+        self._out_p: list[np.ndarray] = []
+        self._out_v: list[np.ndarray] = []
+        self._out_q: list[np.ndarray] = []
+        self._out_s: list[np.ndarray] = []
+
+    def _init_state(self) -> None:
+        """State and covariance at ``t_start`` from the nearest fix and the level attitude."""
+        cfg, inp = self.config, self.inputs
+        half = 0.5 * cfg.init_window_s
+        self.q, yaw_sigma = inp.level_attitude(self.t_start - half, self.t_start + half)
+        k0 = min(int(np.searchsorted(inp.gnss_t, self.t_start)), len(inp.gnss_t) - 1)
+        self.p = inp.gnss_pos[k0].copy()
+        self.v = np.nan_to_num(inp.gnss_vel[k0].copy())
+        self.ba = np.zeros(3)
+        self.bg = np.zeros(3)
+        self.bb = 0.0
+        if inp.baro is not None and len(inp.baro):
+            self.bb = float(np.interp(self.t_start, inp.baro.t, inp.baro.alt)) - self.p[2]
+        P = np.zeros((_N, _N))
+        h0 = inp.gnss.h_acc[k0] if np.isfinite(inp.gnss.h_acc[k0]) else 0.0
+        v0 = inp.gnss.v_acc[k0] if np.isfinite(inp.gnss.v_acc[k0]) else 0.0
+        P[0, 0] = P[1, 1] = max(h0, cfg.gnss_pos_noise) ** 2
+        P[2, 2] = max(v0, cfg.gnss_alt_noise) ** 2
+        P[3:6, 3:6] = np.eye(3) * 0.5**2
+        P[6, 6] = P[7, 7] = 0.05**2
+        P[8, 8] = yaw_sigma**2  # body z ~ down, so this mostly covers heading
+        P[9:12, 9:12] = np.eye(3) * 0.2**2
+        P[12:15, 12:15] = np.eye(3) * 0.02**2
+        P[15, 15] = 0.5**2
+        self.P = P
+
+    # -- the steps -----------------------------------------------------------------------------
+
+    def predict(self, dt: float) -> None:
+        """Propagate the state ``dt`` seconds with the held IMU sample (zero-order hold)."""
         if dt <= 0:
             return
-        r = _quat_matrix(q)
-        a = a_m - ba
-        w = w_m - bg
-        acc_w = r @ a + g_vec
-        acc_h = float(np.hypot(acc_w[0], acc_w[1]))
-        p = p + v * dt + 0.5 * acc_w * dt * dt
-        v = v + acc_w * dt
-        q = _qmul(q, _qexp(w * dt))
-        q = q / np.linalg.norm(q)
-        F = eye16.copy()
+        cfg = self.config
+        r = quat_to_matrix(self.q)
+        a = self.a_m - self.ba
+        w = self.w_m - self.bg
+        acc_w = r @ a + _G_VEC
+        self.acc_h = float(np.hypot(acc_w[0], acc_w[1]))
+        self.p = self.p + self.v * dt + 0.5 * acc_w * dt * dt
+        self.v = self.v + acc_w * dt
+        q = quat_multiply(self.q, quat_from_rotvec(w * dt))
+        self.q = q / np.linalg.norm(q)
+        F = np.eye(_N)
         F[0:3, 3:6] = np.eye(3) * dt
         F[3:6, 6:9] = -(r @ _skew(a)) * dt
         F[3:6, 9:12] = -r * dt
         F[6:9, 6:9] = _rotvec_matrix(w * dt).T
         F[6:9, 12:15] = -np.eye(3) * dt
-        P = F @ P @ F.T
+        P = F @ self.P @ F.T
         d2 = dt * dt
-        dn = dt_raw * dt  # white noise of per-sample sigma at the raw rate: variance sigma^2 dt_raw dt
+        dn = self.inputs.dt_raw * dt  # white noise of per-sample sigma at the raw rate: sigma^2 dt_raw dt
         idx = np.arange(3)
-        P[3 + idx, 3 + idx] += q_acc * dn
-        P[6 + idx, 6 + idx] += q_gyro * dn
-        P[9 + idx, 9 + idx] += q_ab * d2
-        P[12 + idx, 12 + idx] += q_gb * d2
-        P[15, 15] += q_bb * dt
+        P[3 + idx, 3 + idx] += self.q_acc * dn
+        P[6 + idx, 6 + idx] += self.q_gyro * dn
+        P[9 + idx, 9 + idx] += cfg.accel_bias_noise**2 * d2
+        P[12 + idx, 12 + idx] += cfg.gyro_bias_noise**2 * d2
+        P[15, 15] += cfg.baro_bias_noise**2 * dt
+        self.P = P
 
-    def update(y: np.ndarray, H: np.ndarray, R: np.ndarray, kind: str) -> bool:
-        nonlocal p, v, q, ba, bg, bb, P
-        PHt = P @ H.T
+    def _correct(self, y: np.ndarray, H: np.ndarray, R: np.ndarray, kind: str) -> bool:
+        """The gated Kalman update with innovation ``y``; False (and nothing changed) if gated."""
+        PHt = self.P @ H.T
         S = H @ PHt + R
-        if np.any(y * y > gate2 * np.diag(S)):
-            rejected[kind] += 1
+        if np.any(y * y > self.config.gate_sigma**2 * np.diag(S)):
+            self.rejected[kind] += 1
             return False
         K = np.linalg.solve(S, PHt.T).T
         dx = K @ y
-        IKH = eye16 - K @ H
-        P = IKH @ P @ IKH.T + K @ R @ K.T
-        P = 0.5 * (P + P.T)
-        p = p + dx[_P]
-        v = v + dx[_V]
-        q = _qmul(q, _qexp(dx[_TH]))
-        q = q / np.linalg.norm(q)
-        ba = ba + dx[_BA]
-        bg = bg + dx[_BG]
-        bb = bb + float(dx[_BB])
-        accepted[kind] += 1
+        IKH = np.eye(_N) - K @ H
+        P = IKH @ self.P @ IKH.T + K @ R @ K.T
+        self.P = 0.5 * (P + P.T)
+        self.p = self.p + dx[_P]
+        self.v = self.v + dx[_V]
+        q = quat_multiply(self.q, quat_from_rotvec(dx[_TH]))
+        self.q = q / np.linalg.norm(q)
+        self.ba = self.ba + dx[_BA]
+        self.bg = self.bg + dx[_BG]
+        self.bb = self.bb + float(dx[_BB])
+        self.accepted[kind] += 1
         return True
 
-    need_anchor = False
-    for e in range(begin, len(all_t)):
-        te = float(all_t[e])
-        kind = int(all_k[e])
-        i = int(all_i[e])
-        if te - t_imu > cfg.max_imu_gap_s:
+    def update_gnss(self, k: int, t: float) -> None:
+        """Fuse GNSS fix ``k`` (position, then velocity); re-anchor on it when GNSS positions
+        have been rejected for longer than ``gnss_reset_s``."""
+        cfg, g = self.config, self.inputs.gnss
+        extra = (cfg.gnss_accel_scale * self.acc_h) ** 2
+        sh = max(g.h_acc[k] if np.isfinite(g.h_acc[k]) else 0.0, cfg.gnss_pos_noise)
+        sv = max(g.v_acc[k] if np.isfinite(g.v_acc[k]) else 0.0, cfg.gnss_alt_noise)
+        rows = [0, 1, 2] if cfg.use_gnss_altitude else [0, 1]
+        H = np.zeros((len(rows), _N))
+        for r_i, c in enumerate(rows):
+            H[r_i, c] = 1.0
+        R = np.diag([sh**2 + extra, sh**2 + extra, sv**2 + extra][: len(rows)])
+        pos_ok = self._correct(self.inputs.gnss_pos[k, rows] - self.p[rows], H, R, "gnss_pos")
+        if cfg.use_gnss_velocity:
+            self._update_gnss_velocity(k, extra)
+        if pos_ok:
+            self.last_gnss_ok = t
+        elif t - self.last_gnss_ok > cfg.gnss_reset_s:
+            vel = self.inputs.gnss_vel[k]
+            self.reanchor(t, self.inputs.gnss_pos[k], vel if np.all(np.isfinite(vel)) else None, sh, sv)
+
+    def _update_gnss_velocity(self, k: int, extra: float) -> None:
+        cfg = self.config
+        gv = self.inputs.gnss_vel[k]
+        vrows = [c for c in range(3) if np.isfinite(gv[c])]
+        if not vrows:
+            return
+        s_acc = self.inputs.gnss.s_acc[k]
+        ss = s_acc if np.isfinite(s_acc) else 0.0
+        Hv = np.zeros((len(vrows), _N))
+        sig = []
+        for r_i, c in enumerate(vrows):
+            Hv[r_i, 3 + c] = 1.0
+            floor = cfg.gnss_vvel_noise if c == 2 else cfg.gnss_vel_noise
+            sig.append(max(ss, floor) ** 2 + extra)
+        self._correct(gv[vrows] - self.v[vrows], Hv, np.diag(sig), "gnss_vel")
+
+    def update_baro(self, k: int) -> None:
+        """Fuse barometer sample ``k``: ``alt = p_up + b_baro`` (skipped when not finite)."""
+        baro = self.inputs.baro
+        if baro is None:
+            return
+        H = np.zeros((1, _N))
+        H[0, 2] = 1.0
+        H[0, _BB] = 1.0
+        y = np.array([baro.alt[k] - (self.p[2] + self.bb)])
+        if np.isfinite(y[0]):
+            self._correct(y, H, np.array([[self.config.baro_noise**2]]), "baro")
+
+    def update_mag(self, k: int) -> None:
+        """Fuse compass sample ``k`` as a tilt-compensated heading (skipped when the field is
+        missing or zero, or the body is pitched near vertical)."""
+        field = self.inputs.mag.field[k]
+        if not np.all(np.isfinite(field)) or not np.any(field):
+            return
+        roll, pitch, yaw = _ned_euler(quat_to_matrix(self.q))
+        if abs(np.cos(pitch)) < 0.2:
+            return
+        z = mag_heading(field, roll, pitch, self.inputs.declination)
+        H = np.zeros((1, _N))
+        H[0, 7] = np.sin(roll) / np.cos(pitch)
+        H[0, 8] = np.cos(roll) / np.cos(pitch)
+        y = np.array([float(geo.wrap_angle(z - yaw))])
+        self._correct(y, H, np.array([[self.config.yaw_noise**2]]), "mag")
+
+    def reanchor(
+        self, t: float, position: np.ndarray, velocity: np.ndarray | None, sigma_h: float, sigma_v: float
+    ) -> None:
+        """Jump to a GNSS fix: position (and velocity, unless None) are set, their covariance is
+        reset (horizontal / vertical position sigmas, 0.5 m/s velocity) and decorrelated."""
+        self.p = np.array(position, dtype=np.float64)
+        if velocity is not None:
+            self.v = np.array(velocity, dtype=np.float64)
+        P = self.P
+        P[0:6, :] = 0.0
+        P[:, 0:6] = 0.0
+        P[0, 0] = P[1, 1] = sigma_h**2
+        P[2, 2] = sigma_v**2
+        P[3:6, 3:6] = np.eye(3) * 0.5**2
+        self.resets += 1
+        self.last_gnss_ok = t
+
+    def restart_attitude(self, t: float) -> None:
+        """Attitude from accelerometer and compass again (after an IMU gap), its covariance reset."""
+        self.q, yaw_sigma = self.inputs.level_attitude(t, t + self.config.init_window_s)
+        P = self.P
+        P[6:9, :] = 0.0
+        P[:, 6:9] = 0.0
+        P[6, 6] = P[7, 7] = 0.05**2
+        P[8, 8] = yaw_sigma**2
+
+    def process(self, t: float, kind: Event, k: int) -> None:
+        """One event of the time line: predict up to ``t``, then the measurement's step."""
+        cfg, inp = self.config, self.inputs
+        if t - self.t_imu > cfg.max_imu_gap_s:
             # the IMU has been silent (a logging gap, e.g. disarmed, or an IMU dropout while the
             # other sensors go on): never integrate a held IMU sample across it. When the IMU is
             # back the vehicle may have been moved or set upright, so attitude restarts from
             # accelerometer and compass, and position re-anchors on the next GNSS fix.
-            if kind == 0:
-                need_anchor = True
-                q, yaw_sigma = level_attitude(te, te + cfg.init_window_s)
-                P[6:9, :] = 0.0
-                P[:, 6:9] = 0.0
-                P[6, 6] = P[7, 7] = 0.05**2
-                P[8, 8] = yaw_sigma**2
+            if kind is Event.IMU:
+                self.need_anchor = True
+                self.restart_attitude(t)
         else:
-            predict(te - t_now)
-        t_now = te
-        if kind == 0:
-            t_imu = te
-        if need_anchor and kind == 1:
-            p = g_pos[i].copy()
-            v = np.nan_to_num(g_vel[i].copy())
-            P[0:6, :] = 0.0
-            P[:, 0:6] = 0.0
-            P[0, 0] = P[1, 1] = cfg.gnss_pos_noise**2
-            P[2, 2] = cfg.gnss_alt_noise**2
-            P[3:6, 3:6] = np.eye(3) * 0.5**2
-            resets += 1
-            last_gnss_ok = te
-            need_anchor = False
-            continue
-        if kind == 0:
-            a_m, w_m = i_acc[i], i_gyro[i]
-            out_t.append(te)
-            out_p.append(p)
-            out_v.append(v)
-            out_q.append(q)
-            out_s.append(np.sqrt(np.diag(P)[0:3]))
-        elif kind == 1:
-            extra = (cfg.gnss_accel_scale * acc_h) ** 2
-            sh = max(gnss.h_acc[i] if np.isfinite(gnss.h_acc[i]) else 0.0, cfg.gnss_pos_noise)
-            sv = max(gnss.v_acc[i] if np.isfinite(gnss.v_acc[i]) else 0.0, cfg.gnss_alt_noise)
-            rows = [0, 1, 2] if cfg.use_gnss_altitude else [0, 1]
-            H = np.zeros((len(rows), _N))
-            for r_i, c in enumerate(rows):
-                H[r_i, c] = 1.0
-            R = np.diag([sh**2 + extra, sh**2 + extra, sv**2 + extra][: len(rows)])
-            y = g_pos[i, rows] - p[rows]
-            pos_ok = update(y, H, R, "gnss_pos")
-            if cfg.use_gnss_velocity:
-                gv = g_vel[i]
-                vrows = [c for c in range(3) if np.isfinite(gv[c])]
-                if vrows:
-                    ss = gnss.s_acc[i] if np.isfinite(gnss.s_acc[i]) else 0.0
-                    Hv = np.zeros((len(vrows), _N))
-                    sig = []
-                    for r_i, c in enumerate(vrows):
-                        Hv[r_i, 3 + c] = 1.0
-                        floor = cfg.gnss_vvel_noise if c == 2 else cfg.gnss_vel_noise
-                        sig.append(max(ss, floor) ** 2 + extra)
-                    update(gv[vrows] - v[vrows], Hv, np.diag(sig), "gnss_vel")
-            if pos_ok:
-                last_gnss_ok = te
-            elif te - last_gnss_ok > cfg.gnss_reset_s:
-                # re-anchor on GNSS: position (and velocity when reported) jump to the fix
-                p = g_pos[i].copy()
-                if np.all(np.isfinite(g_vel[i])):
-                    v = g_vel[i].copy()
-                P[0:6, :] = 0.0
-                P[:, 0:6] = 0.0
-                P[0, 0] = P[1, 1] = sh**2
-                P[2, 2] = sv**2
-                P[3:6, 3:6] = np.eye(3) * 0.5**2
-                resets += 1
-                last_gnss_ok = te
-        elif kind == 2 and baro is not None:
-            H = np.zeros((1, _N))
-            H[0, 2] = 1.0
-            H[0, _BB] = 1.0
-            y = np.array([baro.alt[i] - (p[2] + bb)])
-            if np.isfinite(y[0]):
-                update(y, H, np.array([[cfg.baro_noise**2]]), "baro")
-        elif kind == 3:
-            field = mag.field[i]
-            if not np.all(np.isfinite(field)) or not np.any(field):
-                continue
-            r = _quat_matrix(q)
-            roll, pitch, yaw = _ned_euler(r)
-            if abs(np.cos(pitch)) < 0.2:
-                continue
-            z = mag_heading(field, roll, pitch, decl)
-            H = np.zeros((1, _N))
-            H[0, 7] = np.sin(roll) / np.cos(pitch)
-            H[0, 8] = np.cos(roll) / np.cos(pitch)
-            y = np.array([float(geo.wrap_angle(z - yaw))])
-            update(y, H, np.array([[cfg.yaw_noise**2]]), "mag")
+            self.predict(t - self.t_now)
+        self.t_now = t
+        if kind is Event.IMU:
+            self.t_imu = t
+        if self.need_anchor and kind is Event.GNSS:
+            vel = np.nan_to_num(inp.gnss_vel[k])
+            self.reanchor(t, inp.gnss_pos[k], vel, cfg.gnss_pos_noise, cfg.gnss_alt_noise)
+            self.need_anchor = False
+        elif kind is Event.IMU:
+            self.a_m, self.w_m = inp.imu_acc[k], inp.imu_gyro[k]
+            self._record(t)
+        elif kind is Event.GNSS:
+            self.update_gnss(k, t)
+        elif kind is Event.BARO:
+            self.update_baro(k)
+        else:
+            self.update_mag(k)
 
-    t_arr = np.array(out_t, dtype=np.float64)
-    quat = np.array(out_q, dtype=np.float64).reshape(-1, 4)
-    solution = NavSolution(
-        name="stablecues-ekf",
-        origin=origin,
-        t=t_arr,
-        position=np.array(out_p, dtype=np.float64).reshape(-1, 3),
-        velocity=np.array(out_v, dtype=np.float64).reshape(-1, 3),
-        quaternion=geo.quat_normalize(quat) if len(quat) else quat,
-        position_std=np.array(out_s, dtype=np.float64).reshape(-1, 3),
-    )
-    report = EkfReport(
-        gnss_lag_s=lag,
-        declination_deg=float(np.degrees(decl)),
-        accel_noise=float(np.sqrt(q_acc)),
-        gyro_noise=float(np.sqrt(q_gyro)),
-        accepted=accepted,
-        rejected=rejected,
-        resets=resets,
-        start_time=t_start,
-    )
-    logger.info(
-        "EKF on %s: %d IMU steps, accepted %s, rejected %s", log.path.name, len(t_arr), accepted, rejected
-    )
-    return solution, report
+    def _record(self, t: float) -> None:
+        self._out_t.append(t)
+        self._out_p.append(self.p)
+        self._out_v.append(self.v)
+        self._out_q.append(self.q)
+        self._out_s.append(np.sqrt(np.diag(self.P)[0:3]))
+
+    # -- the whole log -------------------------------------------------------------------------
+
+    def run(self) -> tuple[NavSolution, EkfReport]:
+        """Process every event from ``t_start`` on; the solution at every IMU sample and a report."""
+        all_t, all_k, all_i = self.inputs.timeline(self.config)
+        begin = int(np.searchsorted(all_t, self.t_start, side="left"))
+        for e in range(begin, len(all_t)):
+            self.process(float(all_t[e]), Event(int(all_k[e])), int(all_i[e]))
+        solution = self.solution()
+        logger.info(
+            "EKF on %s: %d IMU steps, accepted %s, rejected %s",
+            self.name,
+            len(solution),
+            self.accepted,
+            self.rejected,
+        )
+        return solution, self.report()
+
+    def solution(self) -> NavSolution:
+        """The states recorded so far (one per IMU sample), as a navigation solution."""
+        q = np.array(self._out_q, dtype=np.float64).reshape(-1, 4)
+        return NavSolution(
+            name="stablecues-ekf",
+            origin=self.inputs.origin,
+            t=np.array(self._out_t, dtype=np.float64),
+            position=np.array(self._out_p, dtype=np.float64).reshape(-1, 3),
+            velocity=np.array(self._out_v, dtype=np.float64).reshape(-1, 3),
+            quaternion=geo.map_known(quat_normalize, q, 4),
+            position_std=np.array(self._out_s, dtype=np.float64).reshape(-1, 3),
+        )
+
+    def report(self) -> EkfReport:
+        """The settings used and the update counts so far."""
+        return EkfReport(
+            gnss_lag_s=self.inputs.lag,
+            declination_deg=float(np.degrees(self.inputs.declination)),
+            accel_noise=float(np.sqrt(self.q_acc)),
+            gyro_noise=float(np.sqrt(self.q_gyro)),
+            accepted=dict(self.accepted),
+            rejected=dict(self.rejected),
+            resets=self.resets,
+            start_time=self.t_start,
+        )
+
+
+def run_ekf(log: FlightLog, config: EkfConfig | None = None) -> tuple[NavSolution, EkfReport]:
+    """Fuse a flight log's IMU, GNSS, barometer and magnetometer into a navigation solution.
+
+    Args:
+        log: a flight log with IMU and GNSS (barometer and magnetometer are optional).
+        config: filter settings; :class:`EkfConfig` defaults when None.
+
+    Returns:
+        The solution at every IMU sample from the initialisation on (ENU about the first
+        usable GNSS fix, quaternions (x, y, z, w); ``name`` "stablecues-ekf"), and an
+        :class:`EkfReport`.
+
+    Raises:
+        InputError: the log has no IMU samples or no GNSS fix of at least ``config.min_fix``.
+    """
+    return NavigationFilter(log, config).run()
 
 
 @dataclass(frozen=True)
@@ -675,7 +799,7 @@ def compare_solutions(
     att = [float("nan")] * 3
     if estimate.has_attitude and np.all(np.isfinite(ref.quaternion[keep])):
         e_rpy = est.rpy
-        r_rpy = geo.quat_to_euler(geo.enu_to_ned_quat(ref.quaternion[keep]))
+        r_rpy = geo.map_known(quat_to_euler_zyx, geo.enu_to_ned_quat(ref.quaternion[keep]), 3)
         dd = geo.wrap_angle(e_rpy - r_rpy)
         att = [float(np.degrees(np.sqrt(np.mean(dd[:, k] ** 2)))) for k in range(3)]
     return SolutionComparison(

@@ -3,11 +3,12 @@
 Every series has its own time axis ``t``: (N,) float64 seconds since the first record of the
 log (the log's start is 0). :class:`FlightLog` also keeps how that clock maps to the
 autopilot's boot clock and, when the GNSS reported time, to UTC, so that camera frames
-stamped in either clock can be placed on it (:mod:`stablecues.mav.sync`).
+stamped in either clock can be placed on it (:mod:`stablecues.mav.clock`).
 
 Units: degrees for latitude/longitude, metres, metres per second, radians, radians per second,
 gauss for the magnetic field. Vectors in the body frame are Forward-Right-Down (FRD); vectors in
 the world frame of a :class:`NavSolution` are East-North-Up (see :mod:`stablecues.mav.geo`).
+Quaternions are (x, y, z, w), scalar last (:mod:`stablecues.geometry.rotations`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry.rotations import matrix_to_quat, quat_slerp, quat_to_euler_zyx
 from . import geo
 
 
@@ -165,7 +167,8 @@ class NavSolution:
         t: (N,) float64 seconds since log start.
         position: (N, 3) float64 east, north, up metres about ``origin``.
         velocity: (N, 3) float64 east, north, up m/s; NaN when unknown.
-        quaternion: (N, 4) float64 body(FRD)->ENU unit quaternions (w, x, y, z); NaN if unknown.
+        quaternion: (N, 4) float64 body(FRD)->ENU unit quaternions (x, y, z, w), scalar last;
+            NaN rows where the attitude is unknown.
         position_std: (N, 3) float64 1-sigma of ``position`` in m, NaN when unknown.
         origin_estimated: True when the log did not name the origin and it was fitted to GNSS.
     """
@@ -184,10 +187,11 @@ class NavSolution:
 
     @property
     def rpy(self) -> np.ndarray:
-        """(N, 3) float64 roll, pitch, yaw in radians (body FRD relative to NED)."""
+        """(N, 3) float64 roll, pitch, yaw in radians (body FRD relative to NED); NaN rows where
+        the attitude is unknown."""
         if len(self) == 0:
             return _empty(3)
-        return geo.quat_to_euler(geo.enu_to_ned_quat(self.quaternion))
+        return geo.map_known(quat_to_euler_zyx, geo.enu_to_ned_quat(self.quaternion), 3)
 
     @property
     def has_attitude(self) -> bool:
@@ -212,10 +216,7 @@ class NavSolution:
         pos = geo.geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], origin)
         rot = _enu_rotation(self.origin, origin)
         vel = self.velocity @ rot.T
-        q_rot = geo.matrix_to_quat(rot)
-        quat = geo.quat_normalize(
-            geo.quat_multiply(np.broadcast_to(q_rot, self.quaternion.shape), self.quaternion)
-        )
+        quat = geo.rotate_known(matrix_to_quat(rot), self.quaternion)
         return dataclasses.replace(
             self,
             origin=origin,
@@ -252,7 +253,7 @@ class NavSolution:
                 if len(self.position_std) == len(self):
                     std[inside, k] = np.interp(ti, self.t, self.position_std[:, k])
             if self.has_attitude:
-                quat[inside] = geo.quat_slerp(self.t, self.quaternion, ti)
+                quat[inside] = quat_slerp(self.t, self.quaternion, ti)
         return NavSolution(self.name, self.origin, times, pos, vel, quat, std, self.origin_estimated)
 
 

@@ -1,4 +1,4 @@
-"""Frames and rotations for flight data: geodetic <-> local ENU, quaternions, Euler angles.
+"""Frames for flight data: geodetic <-> local ENU, NED <-> ENU attitude, angles.
 
 Conventions used throughout :mod:`stablecues.mav`:
 
@@ -6,21 +6,29 @@ Conventions used throughout :mod:`stablecues.mav`:
   (degrees, degrees, metres above mean sea level), through :mod:`pymap3d` on the WGS84
   ellipsoid. Autopilots log North-East-Down (NED); :data:`R_ENU_NED` converts.
 * Body frame: the autopilots' Forward-Right-Down (FRD).
-* Quaternions: Hamilton, scalar first ``(w, x, y, z)``, rotating body vectors into the world
-  frame (``v_world = R(q) @ v_body``).
+* Quaternions: Hamilton, **(x, y, z, w), scalar last**, as everywhere in stablecues
+  (:mod:`stablecues.geometry.rotations` does all quaternion arithmetic), rotating body vectors
+  into the world frame (``v_world = R(q) @ v_body``). A row of NaN is an unknown attitude
+  (:class:`~stablecues.mav.flightlog.NavSolution` without one); the helpers here pass such rows
+  through, where the rotations functions would reject them.
 * Euler angles: aerospace roll, pitch, yaw (ZYX) of the body relative to NED, radians, yaw in
   (-pi, pi] clockwise from north -- what ArduPilot and PX4 log as Roll/Pitch/Yaw.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
+from ..geometry.rotations import quat_conjugate, quat_multiply, quat_normalize, quat_slerp, yaw_of
+
 # NED vector -> ENU vector (a proper rotation: 180 degrees about (1, 1, 0)/sqrt(2)).
 R_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-_Q_ENU_NED = np.array([0.0, np.sqrt(0.5), np.sqrt(0.5), 0.0])
+Q_ENU_NED = np.array([np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0])
+"""The same rotation as a quaternion (x, y, z, w)."""
 
 MAV_EXTRA_HINT = 'pip install "stablecues[mav]"'
 
@@ -76,133 +84,81 @@ def enu_to_geodetic(enu: np.ndarray, origin: tuple[float, float, float]) -> np.n
 
 
 # ---------------------------------------------------------------------------------------------
-# Quaternions (w, x, y, z), vectorised over leading dimensions.
+# Attitude with unknowns: NaN rows pass through
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of (..., 4) quaternions."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_normalize(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions with a non-negative scalar part; (..., 4) float64."""
+def known_attitude(q: np.ndarray) -> np.ndarray:
+    """(...,) bool: the (..., 4) quaternions that are a rotation (finite, norm above 1e-12, as
+    :func:`~stablecues.geometry.rotations.quat_normalize` demands): a known attitude."""
     q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.isfinite(q).all(axis=-1) & (np.linalg.norm(np.nan_to_num(q), axis=-1) > 1e-12)
 
 
-def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
-    """Quaternion of the rotation vector ``v`` (axis * angle, radians); (..., 3) -> (..., 4)."""
-    v = np.asarray(v, dtype=np.float64)
-    angle = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    # sin(x/2)/x with its series near zero
-    small = angle < 1e-8
-    k = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / np.where(small, 1.0, angle))
-    return np.concatenate([np.cos(half), k * v], axis=-1)
+def map_known(fn: Callable[[np.ndarray], np.ndarray], q: np.ndarray, width: int) -> np.ndarray:
+    """``fn`` applied to the known rows of (N, 4) quaternions, NaN rows of ``width`` elsewhere.
 
+    Args:
+        fn: a vectorised function of (M, 4) quaternions returning (M, width) (a rotations
+            function such as :func:`~stablecues.geometry.rotations.quat_to_euler_zyx`).
+        q: (N, 4) float64 quaternions, NaN (or zero) where the attitude is unknown.
+        width: the length of ``fn``'s rows.
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of (..., 4) unit quaternions; returns (..., 3, 3)."""
+    Returns:
+        (N, width) float64.
+
+    Raises:
+        InputError: ``q`` is not (..., 4).
+    """
     q = np.asarray(q, dtype=np.float64)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
-        ],
-        axis=-2,
-    )
+    if q.shape[-1:] != (4,):
+        raise InputError(f"quaternions: expected shape (..., 4) (x, y, z, w), got {q.shape}")
+    flat = q.reshape(-1, 4)
+    out = np.full((flat.shape[0], width), np.nan)
+    ok = known_attitude(flat)
+    if ok.any():
+        out[ok] = fn(flat[ok])
+    return out.reshape(q.shape[:-1] + (width,))
 
 
-def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w >= 0) of (..., 3, 3) rotation matrices."""
-    from scipy.spatial.transform import Rotation
-
-    r = np.asarray(r, dtype=np.float64)
-    flat = r.reshape(-1, 3, 3)
-    xyzw = Rotation.from_matrix(flat).as_quat()
-    q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
-    return quat_normalize(q).reshape(r.shape[:-2] + (4,))
-
-
-def euler_to_quat(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Quaternion body->NED from aerospace ZYX Euler angles in radians; (N,) each -> (N, 4)."""
-    cr, sr = np.cos(0.5 * np.asarray(roll)), np.sin(0.5 * np.asarray(roll))
-    cp, sp = np.cos(0.5 * np.asarray(pitch)), np.sin(0.5 * np.asarray(pitch))
-    cy, sy = np.cos(0.5 * np.asarray(yaw)), np.sin(0.5 * np.asarray(yaw))
-    return np.stack(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ],
-        axis=-1,
-    )
-
-
-def quat_to_euler(q_ned: np.ndarray) -> np.ndarray:
-    """Aerospace roll, pitch, yaw (radians) of (..., 4) body->NED quaternions; returns (..., 3)."""
-    q = np.asarray(q_ned, dtype=np.float64)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.stack([roll, pitch, yaw], axis=-1)
+def rotate_known(q_left: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``normalize(q_left * q)`` of (N, 4) quaternions ``q`` (NaN rows stay NaN); q_left (4,)."""
+    left = np.asarray(q_left, dtype=np.float64)
+    return map_known(lambda k: quat_normalize(quat_multiply(np.broadcast_to(left, k.shape), k)), q, 4)
 
 
 def ned_to_enu_quat(q_ned: np.ndarray) -> np.ndarray:
-    """Body->NED quaternions to body->ENU quaternions; (..., 4) -> (..., 4)."""
-    return quat_normalize(quat_multiply(np.broadcast_to(_Q_ENU_NED, np.shape(q_ned)), q_ned))
+    """Body->NED quaternions (x, y, z, w) to body->ENU ones; (N, 4) -> (N, 4), NaN rows stay."""
+    return rotate_known(Q_ENU_NED, q_ned)
 
 
 def enu_to_ned_quat(q_enu: np.ndarray) -> np.ndarray:
-    """Body->ENU quaternions to body->NED quaternions; (..., 4) -> (..., 4)."""
-    conj = _Q_ENU_NED * np.array([1.0, -1.0, -1.0, -1.0])
-    return quat_normalize(quat_multiply(np.broadcast_to(conj, np.shape(q_enu)), q_enu))
+    """Body->ENU quaternions (x, y, z, w) to body->NED ones; (N, 4) -> (N, 4), NaN rows stay."""
+    return rotate_known(quat_conjugate(Q_ENU_NED), q_enu)
 
 
-def quat_slerp(times: np.ndarray, quats: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of a quaternion track.
+def known_yaw(q: np.ndarray) -> np.ndarray:
+    """Heading (ZYX yaw about the world vertical, radians) of (N, 4) quaternions; NaN where the
+    attitude is unknown. See :func:`~stablecues.geometry.rotations.yaw_of`."""
+    return map_known(lambda k: yaw_of(k)[..., None], q, 1)[..., 0]
+
+
+def slerp_known(times: np.ndarray, quats: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """:func:`~stablecues.geometry.rotations.quat_slerp` over the known samples of a track.
 
     Args:
-        times: (M,) float64 increasing sample times.
-        quats: (M, 4) unit quaternions (w, x, y, z) at ``times``.
-        query: (N,) float64 times inside ``[times[0], times[-1]]``.
+        times: (M,) float64 non-decreasing times.
+        quats: (M, 4) quaternions (x, y, z, w), NaN or zero where unknown (those are skipped).
+        query: (N,) float64 times.
 
     Returns:
-        (N, 4) float64 unit quaternions (w >= 0).
+        (N, 4) float64; all NaN when no sample is known.
     """
-    times = np.asarray(times, dtype=np.float64)
-    quats = quat_normalize(np.asarray(quats, dtype=np.float64))
+    ok = known_attitude(quats)
     query = np.asarray(query, dtype=np.float64)
-    if len(times) == 1:
-        return np.repeat(quats, len(query), axis=0)
-    i = np.clip(np.searchsorted(times, query, side="right") - 1, 0, len(times) - 2)
-    span = times[i + 1] - times[i]
-    u = np.clip((query - times[i]) / np.where(span > 0, span, 1.0), 0.0, 1.0)[:, None]
-    a, b = quats[i], quats[i + 1]
-    dot = np.sum(a * b, axis=1, keepdims=True)
-    b = np.where(dot < 0, -b, b)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin_t = np.sin(theta)
-    near = sin_t < 1e-9
-    wa = np.where(near, 1.0 - u, np.sin((1.0 - u) * theta) / np.where(near, 1.0, sin_t))
-    wb = np.where(near, u, np.sin(u * theta) / np.where(near, 1.0, sin_t))
-    return quat_normalize(wa * a + wb * b)
+    if not ok.any():
+        return np.full((len(query), 4), np.nan)
+    return quat_slerp(np.asarray(times, dtype=np.float64)[ok], np.asarray(quats)[ok], query)
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:

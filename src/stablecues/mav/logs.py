@@ -24,12 +24,14 @@ import struct
 import warnings
 from collections import Counter
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import DatasetError
+from ..geometry.rotations import euler_zyx_to_quat, quat_to_euler_zyx, wxyz_to_xyzw
 from . import geo
 from .flightlog import (
     AttitudeSeries,
@@ -156,144 +158,176 @@ _WANTED = {"GPS", "GPA", "IMU", "BARO", "MAG", "ATT", "XKF1", "XKQ", "NKF1", "NK
 _WANTED |= {"ORGN", "MODE", "MSG", "PARM"}
 
 
-def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
-    dfreader = _import("DFReader")
-    mavutil = _import("mavutil")
-    out, err = io.StringIO(), io.StringIO()
-    counts: Counter[str] = Counter()
-    rows: dict[str, list[tuple[float | None, Any]]] = {k: [] for k in _WANTED}
-    params: dict[str, float] = {}
-    vehicle = ""
-    boot: float | None = None
+_Rows = list[tuple[float | None, Any]]
+
+
+@dataclass
+class _DataflashScan:
+    """What one pass over a dataflash log keeps: counts, wanted records, parameters, clocks."""
+
+    counts: Counter[str] = field(default_factory=Counter)
+    rows: dict[str, _Rows] = field(default_factory=lambda: {k: [] for k in _WANTED})
+    params: dict[str, float] = field(default_factory=dict)
+    vehicle: str = ""
     first_boot: float | None = None
     last_boot: float | None = None
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    mav_type: Any = None
+    trailing: int = 0
+    offset: int = 0
+    data_len: int = 0
+    noise: list[str] = field(default_factory=list)
+
+    def add(self, name: str, boot: float | None, m: Any) -> None:
+        """Book one record of a wanted type."""
+        if name == "PARM":
+            self.params[str(m.Name)] = float(m.Value)
+        elif name == "MSG":
+            msg = str(m.Message)
+            if not self.vehicle and re.match(r"(Ardu\w+|APM:\w+|Rover|Blimp|AntennaTracker)", msg):
+                self.vehicle = msg
+        else:
+            self.rows[name].append((boot, m))
+
+
+def _boot_time(m: Any, name: str, boot: float | None) -> float | None:
+    """The record's boot-clock time in seconds, or ``boot`` (the last one seen) when it has none."""
+    names = m._fieldnames
+    if "TimeUS" in names:
+        return float(m.TimeUS * 1e-6)
+    if name == "GPS" and "T" in names:  # ArduCopter 3.x: TimeMS is the GPS time of week
+        return float(m.T * 1e-3)
+    if "TimeMS" in names and name != "GPS":
+        return float(m.TimeMS * 1e-3)
+    return boot
+
+
+def _open_dataflash(path: Path, text: bool) -> Any:
+    dfreader = _import("DFReader")
+    try:
+        return (
+            dfreader.DFReader_text(str(path), zero_time_base=False)
+            if text
+            else dfreader.DFReader_binary(str(path), zero_time_base=False)
+        )
+    except Exception as exc:
+        raise DatasetError(f"{path}: not a readable dataflash log ({type(exc).__name__}: {exc})") from None
+
+
+def _read_records(reader: Any, scan: _DataflashScan, err: io.StringIO) -> None:
+    """Every record of ``reader`` into ``scan``; a reader error ends the pass (noted in ``err``)."""
+    boot: float | None = None
+    while True:
         try:
-            reader = (
-                dfreader.DFReader_text(str(path), zero_time_base=False)
-                if text
-                else dfreader.DFReader_binary(str(path), zero_time_base=False)
-            )
-        except Exception as exc:
-            raise DatasetError(
-                f"{path}: not a readable dataflash log ({type(exc).__name__}: {exc})"
-            ) from None
-        while True:
-            try:
-                m = reader.recv_msg()
-            except Exception as exc:  # pymavlink raises assorted errors on corrupt data
-                err.write(f"stopped reading: {type(exc).__name__}: {exc}\n")
-                break
-            if m is None:
-                break
-            name = m.get_type()
-            counts[name] += 1
-            names = m._fieldnames
-            if "TimeUS" in names:
-                boot = m.TimeUS * 1e-6
-            elif name == "GPS" and "T" in names:  # ArduCopter 3.x: TimeMS is the GPS time of week
-                boot = m.T * 1e-3
-            elif "TimeMS" in names and name != "GPS":
-                boot = m.TimeMS * 1e-3
-            if boot is not None:
-                first_boot = boot if first_boot is None else first_boot
-                last_boot = boot if last_boot is None else max(last_boot, boot)
-            if name not in _WANTED:
-                continue
-            if name == "PARM":
-                params[str(m.Name)] = float(m.Value)
-            elif name == "MSG":
-                msg = str(m.Message)
-                if not vehicle and re.match(r"(Ardu\w+|APM:\w+|Rover|Blimp|AntennaTracker)", msg):
-                    vehicle = msg
-            else:
-                rows[name].append((boot, m))
-        mav_type = reader.mav_type
-        data_len, offset = int(getattr(reader, "data_len", 0)), int(getattr(reader, "offset", 0))
-        trailing = max(0, data_len - offset) if not text else 0
+            m = reader.recv_msg()
+        except Exception as exc:  # pymavlink raises assorted errors on corrupt data
+            err.write(f"stopped reading: {type(exc).__name__}: {exc}\n")
+            break
+        if m is None:
+            break
+        name = m.get_type()
+        scan.counts[name] += 1
+        boot = _boot_time(m, name, boot)
+        if boot is not None:
+            scan.first_boot = boot if scan.first_boot is None else scan.first_boot
+            scan.last_boot = boot if scan.last_boot is None else max(scan.last_boot, boot)
+        if name in _WANTED:
+            scan.add(name, boot, m)
+
+
+def _scan_dataflash(path: Path, text: bool) -> _DataflashScan:
+    """One pass over the log with pymavlink, its console output captured as ``noise``."""
+    scan = _DataflashScan()
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        reader = _open_dataflash(path, text)
+        _read_records(reader, scan, err)
+        scan.mav_type = reader.mav_type
+        scan.data_len = int(getattr(reader, "data_len", 0))
+        scan.offset = int(getattr(reader, "offset", 0))
+        scan.trailing = max(0, scan.data_len - scan.offset) if not text else 0
         with contextlib.suppress(Exception):
             reader.close()
         with contextlib.suppress(Exception):
             reader.filehandle.close()
-    if first_boot is None or last_boot is None:
-        raise DatasetError(f"{path}: not a usable dataflash log: no record with a timestamp was found")
+    scan.noise = [ln for ln in (out.getvalue() + err.getvalue()).splitlines() if ln.strip()]
+    return scan
 
+
+def _dataflash_warnings(scan: _DataflashScan) -> list[str]:
+    """One line per reading problem: a truncated file, skipped bytes, the reader's messages."""
     warn_list: list[str] = []
-    truncated = trailing > 0
-    if truncated:
+    if scan.trailing > 0:
         warn_list.append(
-            f"log ends inside a record: the last {trailing} bytes were ignored "
-            f"(read up to offset {offset} of {data_len})"
+            f"log ends inside a record: the last {scan.trailing} bytes were ignored "
+            f"(read up to offset {scan.offset} of {scan.data_len})"
         )
-    noise = [ln for ln in (out.getvalue() + err.getvalue()).splitlines() if ln.strip()]
-    if noise:
-        bad = sum("bad header" in ln for ln in noise)
-        rest = [ln for ln in noise if "bad header" not in ln]
+    if scan.noise:
+        bad = sum("bad header" in ln for ln in scan.noise)
+        rest = [ln for ln in scan.noise if "bad header" not in ln]
         if bad:
             warn_list.append(f"skipped {bad} bytes of unrecognised data")
         warn_list += rest[:5]
         if len(rest) > 5:
             warn_list.append(f"... and {len(rest) - 5} more reader messages")
+    return warn_list
 
-    t0 = first_boot
 
-    def times(items: list[tuple[float | None, Any]]) -> np.ndarray:
-        return np.array([(b if b is not None else t0) - t0 for b, _ in items], dtype=np.float64)
+def _df_times(items: _Rows, t0: float) -> np.ndarray:
+    """Seconds since log start of records (a record before the first timestamp is at 0)."""
+    return np.array([(b if b is not None else t0) - t0 for b, _ in items], dtype=np.float64)
 
-    def inst(items: list[tuple[float | None, Any]], field: str = "I") -> list[tuple[float | None, Any]]:
-        return [(b, m) for b, m in items if getattr(m, field, 0) in (0, None) or field not in m._fieldnames]
 
-    gnss, utc_offset = _df_gnss(inst(rows["GPS"]), inst(rows["GPA"]), t0)
-    imu_rows = inst(rows["IMU"])
+def _df_first(items: _Rows, field: str = "I") -> _Rows:
+    """The records of instance 0 (or without an instance field)."""
+    return [(b, m) for b, m in items if getattr(m, field, 0) in (0, None) or field not in m._fieldnames]
+
+
+def _df_sensors(rows: dict[str, _Rows], t0: float) -> tuple[ImuSeries, BaroSeries, MagSeries, AttitudeSeries]:
+    """IMU, barometer, compass (first instances) and the autopilot's attitude."""
+    imu_rows = _df_first(rows["IMU"])
     imu = (
         ImuSeries(
-            times(imu_rows),
+            _df_times(imu_rows, t0),
             np.array([[m.GyrX, m.GyrY, m.GyrZ] for _, m in imu_rows], dtype=np.float64),
             np.array([[m.AccX, m.AccY, m.AccZ] for _, m in imu_rows], dtype=np.float64),
         )
         if imu_rows
         else ImuSeries.empty()
     )
-    baro_rows = inst(rows["BARO"])
+    baro_rows = _df_first(rows["BARO"])
     baro = (
         BaroSeries(
-            times(baro_rows),
+            _df_times(baro_rows, t0),
             np.array([m.Alt for _, m in baro_rows], dtype=np.float64),
             np.array([getattr(m, "Press", np.nan) for _, m in baro_rows], dtype=np.float64),
         )
         if baro_rows
         else BaroSeries.empty()
     )
-    mag_rows = inst(rows["MAG"])
+    mag_rows = _df_first(rows["MAG"])
     mag = (
         MagSeries(
-            times(mag_rows),
+            _df_times(mag_rows, t0),
             np.array([[m.MagX, m.MagY, m.MagZ] for _, m in mag_rows], dtype=np.float64) * 1e-3,
         )
         if mag_rows
         else MagSeries.empty()
     )
     att_rows = rows["ATT"]
-    attitude = (
-        AttitudeSeries(
-            times(att_rows),
-            np.radians(np.array([[m.Roll, m.Pitch, m.Yaw] for _, m in att_rows], dtype=np.float64)),
-        )
-        if att_rows
-        else AttitudeSeries.empty()
-    )
-    if len(attitude):
+    attitude = AttitudeSeries.empty()
+    if att_rows:
+        rpy = np.radians(np.array([[m.Roll, m.Pitch, m.Yaw] for _, m in att_rows], dtype=np.float64))
         attitude = AttitudeSeries(
-            attitude.t, np.column_stack([attitude.rpy[:, :2], geo.wrap_angle(attitude.rpy[:, 2])])
+            _df_times(att_rows, t0), np.column_stack([rpy[:, :2], geo.wrap_angle(rpy[:, 2])])
         )
+    return imu, baro, mag, attitude
 
-    onboard, origin_note = _df_onboard(rows, t0, gnss, times, inst)
-    if origin_note:
-        warn_list.append(origin_note)
 
-    mapping = mavutil.mode_mapping_bynumber(mav_type) or {}
+def _df_modes(rows: _Rows, t0: float, mav_type: Any) -> tuple[ModeChange, ...]:
+    """Flight-mode records, named by pymavlink's mode table of the vehicle type."""
+    mapping = _import("mavutil").mode_mapping_bynumber(mav_type) or {}
     changes: list[ModeChange] = []
-    for b, m in rows["MODE"]:
+    for b, m in rows:
         t = (b if b is not None else t0) - t0
         raw = m.ModeNum if "ModeNum" in m._fieldnames else m.Mode
         if isinstance(raw, str) and not raw.strip().lstrip("-").isdigit():
@@ -301,16 +335,30 @@ def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
             continue
         number = int(raw)
         changes.append(ModeChange(t, str(mapping.get(number, f"MODE_{number}")), number))
+    return tuple(changes)
 
+
+def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
+    scan = _scan_dataflash(path, text)
+    if scan.first_boot is None or scan.last_boot is None:
+        raise DatasetError(f"{path}: not a usable dataflash log: no record with a timestamp was found")
+    warn_list = _dataflash_warnings(scan)
+    t0 = scan.first_boot
+    rows = scan.rows
+    gnss, utc_offset = _df_gnss(_df_first(rows["GPS"]), _df_first(rows["GPA"]), t0)
+    imu, baro, mag, attitude = _df_sensors(rows, t0)
+    onboard, origin_note = _df_onboard(rows, t0, gnss)
+    if origin_note:
+        warn_list.append(origin_note)
     return FlightLog(
         path=path,
         kind="ardupilot",
-        vehicle=vehicle,
-        duration=float(last_boot - t0),
+        vehicle=scan.vehicle,
+        duration=float(scan.last_boot - t0),
         boot_time_offset=float(t0),
         utc_offset=utc_offset,
-        counts=dict(counts),
-        params=params,
+        counts=dict(scan.counts),
+        params=scan.params,
         gnss=gnss,
         baro=baro,
         imu=imu,
@@ -318,8 +366,8 @@ def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
         attitude=attitude,
         onboard=onboard,
         ground_truth=None,
-        mode_changes=tuple(changes),
-        truncated=truncated,
+        mode_changes=_df_modes(rows["MODE"], t0, scan.mav_type),
+        truncated=scan.trailing > 0,
         warnings=tuple(warn_list),
     )
 
@@ -384,31 +432,27 @@ def _df_gnss(
     return fixes, utc_offset
 
 
-def _df_onboard(
-    rows: dict[str, list[tuple[float | None, Any]]],
-    t0: float,
-    gnss: GnssFixes,
-    times: Callable[[list[tuple[float | None, Any]]], np.ndarray],
-    inst: Callable[..., list[tuple[float | None, Any]]],
-) -> tuple[NavSolution | None, str]:
+def _df_onboard(rows: dict[str, _Rows], t0: float, gnss: GnssFixes) -> tuple[NavSolution | None, str]:
     """The autopilot's EKF output (EKF3 XKF1 core 0, else EKF2 NKF1, else the 2014 EKF1)."""
-    found = [(n, qn) for n, qn in (("XKF1", "XKQ"), ("NKF1", "NKQ1"), ("EKF1", "")) if inst(rows[n], "C")]
+    found = [
+        (n, qn) for n, qn in (("XKF1", "XKQ"), ("NKF1", "NKQ1"), ("EKF1", "")) if _df_first(rows[n], "C")
+    ]
     if not found:
         return None, ""
     name, qname = found[0]
-    items = inst(rows[name], "C")
-    t = times(items)
+    items = _df_first(rows[name], "C")
+    t = _df_times(items, t0)
     ned = np.array([[m.PN, m.PE, m.PD] for _, m in items], dtype=np.float64)
     vel_ned = np.array([[m.VN, m.VE, m.VD] for _, m in items], dtype=np.float64)
     rpy = np.radians(np.array([[m.Roll, m.Pitch, m.Yaw] for _, m in items], dtype=np.float64))
-    q_ned = geo.euler_to_quat(rpy[:, 0], rpy[:, 1], rpy[:, 2])
+    q_ned = euler_zyx_to_quat(rpy[:, 0], rpy[:, 1], rpy[:, 2])
     if qname:
-        qitems = inst(rows[qname] or rows.get("NKQ", []), "C")
+        qitems = _df_first(rows[qname] or rows.get("NKQ", []), "C")
         qmap = {round(b, 6): m for b, m in qitems if b is not None}
         for k, (b, _) in enumerate(items):
             qm = qmap.get(round(b if b is not None else t0, 6))
             if qm is not None:
-                q_ned[k] = (qm.Q1, qm.Q2, qm.Q3, qm.Q4)
+                q_ned[k] = (qm.Q2, qm.Q3, qm.Q4, qm.Q1)  # logged scalar first (Q1 = w)
     q_enu = geo.ned_to_enu_quat(q_ned)
     pos = ned @ geo.R_ENU_NED.T
     vel = vel_ned @ geo.R_ENU_NED.T
@@ -475,58 +519,71 @@ def _ulog_trailing_bytes(path: Path) -> int:
     return n - off
 
 
-def _read_ulog(path: Path) -> FlightLog:
+_Topics = dict[str, dict[str, np.ndarray]]
+_Seconds = Callable[[dict[str, np.ndarray]], np.ndarray]
+
+
+def _ulog_vec(data: dict[str, np.ndarray], base: str, n: int = 3) -> np.ndarray:
+    """(N, n) float64 of the array fields ``base[0]`` ... ``base[n-1]``."""
+    return np.column_stack([data[f"{base}[{k}]"].astype(np.float64) for k in range(n)])
+
+
+def _ulog_quat(data: dict[str, np.ndarray]) -> np.ndarray:
+    """(N, 4) quaternions (x, y, z, w) of a topic's ``q`` field (PX4 logs it scalar first)."""
+    return wxyz_to_xyzw(_ulog_vec(data, "q", 4))
+
+
+def _open_ulog(path: Path) -> Any:
     pyulog = _import("pyulog")
     try:
-        ulog = pyulog.ULog(str(path))
+        return pyulog.ULog(str(path))
     except Exception as exc:
         raise DatasetError(f"{path}: not a readable ULog ({type(exc).__name__}: {exc})") from None
-    start = int(ulog.start_timestamp)
+
+
+def _ulog_warnings(path: Path, ulog: Any) -> tuple[list[str], bool]:
+    """Reading problems, one line each, and whether the file ends inside a message."""
     warn_list: list[str] = []
     trailing = _ulog_trailing_bytes(path)
-    truncated = trailing > 0
-    if truncated:
+    if trailing > 0:
         warn_list.append(f"log ends inside a record: the last {trailing} bytes were ignored")
     if getattr(ulog, "file_corruption", False):
         warn_list.append("pyulog found corrupt data in the file; corrupt messages were skipped")
+    return warn_list, trailing > 0
 
-    topics: dict[str, dict[str, np.ndarray]] = {}
+
+def _ulog_topics(ulog: Any) -> tuple[_Topics, Counter[str]]:
+    """The first instance of every topic, and the number of samples per topic (all instances)."""
+    topics: _Topics = {}
     counts: Counter[str] = Counter()
     for d in ulog.data_list:
         counts[d.name] += len(d.data["timestamp"])
         if d.multi_id == 0 and d.name not in topics:
             topics[d.name] = d.data
-    # pyulog's convention (and the MANIFEST's): the log starts at the header's timestamp; a few
-    # topics carry samples stamped before it (negative times here).
-    t0_us = start
-    last = int(ulog.last_timestamp)
+    return topics, counts
 
-    def tsec(data: dict[str, np.ndarray]) -> np.ndarray:
-        return (data["timestamp"].astype(np.int64) - t0_us) * 1e-6
 
-    def vec(data: dict[str, np.ndarray], base: str, n: int = 3) -> np.ndarray:
-        return np.column_stack([data[f"{base}[{k}]"].astype(np.float64) for k in range(n)])
-
-    gnss, utc_offset = _ulog_gnss(topics, tsec)
-    baro = _ulog_baro(topics, tsec)
+def _ulog_imu_mag(topics: _Topics, tsec: _Seconds) -> tuple[ImuSeries, MagSeries]:
     imu = ImuSeries.empty()
     if "sensor_combined" in topics:
         sc = topics["sensor_combined"]
-        imu = ImuSeries(tsec(sc), vec(sc, "gyro_rad"), vec(sc, "accelerometer_m_s2"))
+        imu = ImuSeries(tsec(sc), _ulog_vec(sc, "gyro_rad"), _ulog_vec(sc, "accelerometer_m_s2"))
     mag = MagSeries.empty()
     if "vehicle_magnetometer" in topics:
         vm = topics["vehicle_magnetometer"]
-        mag = MagSeries(tsec(vm), vec(vm, "magnetometer_ga"))
+        mag = MagSeries(tsec(vm), _ulog_vec(vm, "magnetometer_ga"))
     elif "sensor_combined" in topics and "magnetometer_ga[0]" in topics["sensor_combined"]:
         sc = topics["sensor_combined"]
-        mag = MagSeries(tsec(sc), vec(sc, "magnetometer_ga"))
-    attitude = AttitudeSeries.empty()
-    q_att: tuple[np.ndarray, np.ndarray] | None = None
+        mag = MagSeries(tsec(sc), _ulog_vec(sc, "magnetometer_ga"))
+    return imu, mag
+
+
+def _ulog_solutions(topics: _Topics, tsec: _Seconds) -> tuple[NavSolution | None, NavSolution | None]:
+    """The onboard estimate (``vehicle_local_position``) and the simulator's ground truth."""
+    q_att = None
     if "vehicle_attitude" in topics:
         va = topics["vehicle_attitude"]
-        q = vec(va, "q", 4)
-        attitude = AttitudeSeries(tsec(va), geo.quat_to_euler(q))
-        q_att = (tsec(va), q)
+        q_att = (tsec(va), _ulog_quat(va))
     onboard = _ulog_local_position(
         topics.get("vehicle_local_position"), tsec, q_att, "vehicle_local_position"
     )
@@ -535,29 +592,57 @@ def _read_ulog(path: Path) -> FlightLog:
         q_gt = None
         if "vehicle_attitude_groundtruth" in topics:
             vag = topics["vehicle_attitude_groundtruth"]
-            q_gt = (tsec(vag), vec(vag, "q", 4))
+            q_gt = (tsec(vag), _ulog_quat(vag))
         truth = _ulog_local_position(
             topics["vehicle_local_position_groundtruth"], tsec, q_gt, "vehicle_local_position_groundtruth"
         )
+    return onboard, truth
 
-    changes: list[ModeChange] = []
-    if "vehicle_status" in topics:
-        vs = topics["vehicle_status"]
-        nav = vs["nav_state"].astype(np.int64)
-        tt = np.maximum(tsec(vs), 0.0)
-        for k in range(len(nav)):
-            if k == 0 or nav[k] != nav[k - 1]:
-                changes.append(
-                    ModeChange(
-                        float(tt[k]), PX4_NAV_STATES.get(int(nav[k]), f"NAV_{int(nav[k])}"), int(nav[k])
-                    )
-                )
 
+def _ulog_modes(topics: _Topics, tsec: _Seconds) -> tuple[ModeChange, ...]:
+    """A mode change wherever ``vehicle_status.nav_state`` changes."""
+    if "vehicle_status" not in topics:
+        return ()
+    vs = topics["vehicle_status"]
+    nav = vs["nav_state"].astype(np.int64)
+    tt = np.maximum(tsec(vs), 0.0)
+    return tuple(
+        ModeChange(float(tt[k]), PX4_NAV_STATES.get(int(nav[k]), f"NAV_{int(nav[k])}"), int(nav[k]))
+        for k in range(len(nav))
+        if k == 0 or nav[k] != nav[k - 1]
+    )
+
+
+def _ulog_info(ulog: Any) -> tuple[str, dict[str, float]]:
+    """The vehicle's description and its parameters (last logged value of each)."""
     info = ulog.msg_info_dict
     vehicle = " ".join(str(info[k]) for k in ("sys_name", "ver_hw", "ver_sw_release") if k in info)
     params = {str(k): float(v) for k, v in ulog.initial_parameters.items()}
     for _, key, value in ulog.changed_parameters:
         params[str(key)] = float(value)
+    return vehicle, params
+
+
+def _read_ulog(path: Path) -> FlightLog:
+    ulog = _open_ulog(path)
+    warn_list, truncated = _ulog_warnings(path, ulog)
+    topics, counts = _ulog_topics(ulog)
+    # pyulog's convention (and the MANIFEST's): the log starts at the header's timestamp; a few
+    # topics carry samples stamped before it (negative times here).
+    t0_us = int(ulog.start_timestamp)
+    last = int(ulog.last_timestamp)
+
+    def tsec(data: dict[str, np.ndarray]) -> np.ndarray:
+        return (data["timestamp"].astype(np.int64) - t0_us) * 1e-6
+
+    gnss, utc_offset = _ulog_gnss(topics, tsec)
+    imu, mag = _ulog_imu_mag(topics, tsec)
+    attitude = AttitudeSeries.empty()
+    if "vehicle_attitude" in topics:
+        va = topics["vehicle_attitude"]
+        attitude = AttitudeSeries(tsec(va), geo.map_known(quat_to_euler_zyx, _ulog_quat(va), 3))
+    onboard, truth = _ulog_solutions(topics, tsec)
+    vehicle, params = _ulog_info(ulog)
     return FlightLog(
         path=path,
         kind="px4",
@@ -568,13 +653,13 @@ def _read_ulog(path: Path) -> FlightLog:
         counts=dict(counts),
         params=params,
         gnss=gnss,
-        baro=baro,
+        baro=_ulog_baro(topics, tsec),
         imu=imu,
         mag=mag,
         attitude=attitude,
         onboard=onboard,
         ground_truth=truth,
-        mode_changes=tuple(changes),
+        mode_changes=_ulog_modes(topics, tsec),
         truncated=truncated,
         warnings=tuple(warn_list),
     )
@@ -671,7 +756,7 @@ def _ulog_local_position(
         tq, q = q_att
         inside = (t >= tq[0]) & (t <= tq[-1])
         order = np.argsort(tq, kind="stable")
-        quat[inside] = geo.ned_to_enu_quat(geo.quat_slerp(tq[order], q[order], t[inside]))
+        quat[inside] = geo.ned_to_enu_quat(geo.slerp_known(tq[order], q[order], t[inside]))
     return NavSolution(
         name=name,
         origin=origin,
@@ -702,7 +787,8 @@ def _read_gnss_csv(path: Path) -> FlightLog:
     iutc = find_column(header, _UTC_NAMES)
     if ilat is None or ilon is None:
         raise DatasetError(f"{path}: GNSS track needs latitude and longitude columns, found {header}")
-    if itime is None and iutc is None:
+    main = itime if itime is not None else iutc
+    if main is None:
         raise DatasetError(
             f"{path}: GNSS track needs a time column ({', '.join(_TIME_NAMES + _UTC_NAMES)}), found {header}"
         )
@@ -712,8 +798,6 @@ def _read_gnss_csv(path: Path) -> FlightLog:
     def col(i: int) -> list[str]:
         return [r[i] for r in body]
 
-    main = itime if itime is not None else iutc
-    assert main is not None  # for mypy; checked above
     secs, is_epoch = time_column_seconds(path, header[main], col(main))
     utc_secs: np.ndarray | None = secs if is_epoch else None
     if utc_secs is None and iutc is not None:

@@ -117,9 +117,13 @@ def time_column_seconds(path: Path, name: str, values: list[str]) -> tuple[np.nd
         # fractional values are seconds; integers get the unit that makes their spacing plausible
         scale = 1.0 if any("." in v or "e" in v.lower() for v in values) else _guess_scale(raw)
     secs = raw * scale
+    return secs, is_epoch_seconds(secs)
+
+
+def is_epoch_seconds(secs: np.ndarray) -> bool:
+    """True when (N,) seconds are UNIX (UTC) times: their median is past :data:`EPOCH_THRESHOLD_S`."""
     finite = secs[np.isfinite(secs)]
-    is_epoch = bool(finite.size and np.median(finite) > EPOCH_THRESHOLD_S)
-    return secs, is_epoch
+    return bool(finite.size and np.median(finite) > EPOCH_THRESHOLD_S)
 
 
 def _guess_scale(raw: np.ndarray) -> float:

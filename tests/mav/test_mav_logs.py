@@ -1,4 +1,5 @@
-"""Real flight logs of ../shared/data/mav against the facts in its MANIFEST.md (skips when absent)."""
+"""Flight-log readers: a hand-written ArduPilot dataflash log (binary and text), and the real
+logs of ../shared/data/mav against the facts in its MANIFEST.md (those skip when it is absent)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,96 @@ pytest.importorskip("pymavlink")
 pytest.importorskip("pyulog")
 pytest.importorskip("pymap3d")
 
+from flight_synth import DF_HEAD, make_log  # noqa: E402
+
 from stablecues.errors import DatasetError  # noqa: E402
-from stablecues.mav import FlightLog, TruncatedLogWarning, read_log  # noqa: E402
+from stablecues.geometry.rotations import quat_to_matrix  # noqa: E402
+from stablecues.mav import FlightLog, TruncatedLogWarning, detect_format, read_log  # noqa: E402
+
+# ---------------------------------------------------------------------------------------------
+# synthetic logs
+
+
+def test_synthetic_dataflash_reads(tmp_path: Path) -> None:
+    path = tmp_path / "synth.bin"
+    path.write_bytes(make_log())
+    assert detect_format(path) == "dataflash"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a complete log: no warning at all
+        log = read_log(path)
+    assert log.vehicle == "ArduCopter V4.3.6 (abcdef12)" and not log.truncated
+    assert log.boot_time_offset == pytest.approx(50.0)
+    assert log.duration == pytest.approx(9.98, abs=1e-6)
+    assert log.counts["IMU"] == 1000 and len(log.imu) == 500  # instance 0 only
+    np.testing.assert_allclose(log.imu.accel[0], [0, 0, -9.80665], rtol=1e-6)
+    assert len(log.gnss) == 50 and np.all(log.gnss.fix == 3)
+    np.testing.assert_allclose(log.gnss.vel_ned[-1], [2.0, 0.0, 0.0], atol=1e-6)
+    assert log.gnss.lat[0] == pytest.approx(52.0) and log.gnss.lon[0] == pytest.approx(-4.0)  # 'L': 1e-7 deg
+    np.testing.assert_allclose(log.mag.field[0], [0.2, 0.0, 0.4])  # milligauss -> gauss
+    # GPS week 2269, 300000 s into the week, 18 leap seconds
+    assert log.utc_offset == pytest.approx(315964800 + 2269 * 604800 + 300_000 - 18, abs=1e-3)
+    assert [(c.name, round(c.t, 2)) for c in log.mode_changes] == [
+        ("LOITER", 0.0),
+        ("BRAKE", 4.0),
+        ("RTL", 7.0),
+    ]
+    assert log.onboard is not None and log.onboard.origin == pytest.approx((52.0, -4.0, 100.0))
+    np.testing.assert_allclose(log.onboard.position[-1], [0.0, 17.8, 0.0], atol=1e-4)  # ENU: north is y
+
+
+def test_synthetic_dataflash_truncated_and_corrupt(tmp_path: Path) -> None:
+    data = make_log()
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(data[: len(data) - 5])
+    with pytest.warns(TruncatedLogWarning, match="ends inside a record"):
+        log = read_log(cut)
+    assert log.truncated and len(log.gnss) == 50
+    # garbage in the middle: skipped with a warning, the rest still reads
+    mid = len(data) // 2
+    bad = tmp_path / "bad.bin"
+    bad.write_bytes(data[:mid] + b"\x00\x01\x02garbage" * 20 + data[mid:])
+    with pytest.warns(UserWarning):
+        log = read_log(bad)
+    assert len(log.gnss) >= 45
+    # a dataflash header followed by nothing usable
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(DF_HEAD + bytes(range(200)))
+    with pytest.raises(DatasetError, match="no record with a timestamp"):
+        read_log(junk)
+    empty = tmp_path / "empty.bin"
+    empty.write_bytes(b"")
+    with pytest.raises(DatasetError, match="not a flight log"):
+        read_log(empty)
+    with pytest.raises(DatasetError, match="not found"):
+        read_log(tmp_path / "missing.bin")
+
+
+def test_text_dataflash_log(tmp_path: Path) -> None:
+    lines = [
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns",
+        "FMT, 129, 23, GPS, QBIHBcLLeeff, TimeUS,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ",
+        "FMT, 130, 31, IMU, Qffffff, TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ",
+        "FMT, 131, 14, MODE, QMBB, TimeUS,Mode,ModeNum,Rsn",
+        "FMT, 132, 75, MSG, QZ, TimeUS,Message",
+        "MSG, 1000000, ArduCopter V4.0.0",
+        "MODE, 1000000, 2, 2, 1",
+        "IMU, 1000000, 0, 0, 0, 0, 0, -9.8",
+        "GPS, 1000000, 3, 100000, 2000, 10, 1.0, 52.1, -4.1, 50.0, 0, 0, 0",
+        "IMU, 2000000, 0, 0, 0, 0, 0, -9.8",
+        "MODE, 2500000, 5, 5, 1",
+        "GPS, 3000000, 3, 102000, 2000, 10, 1.0, 52.2, -4.1, 50.0, 0, 0, 0",
+    ]
+    path = tmp_path / "flight.log"
+    path.write_text("\n".join(lines) + "\n")
+    assert detect_format(path) == "dataflash_text"
+    log = read_log(path)
+    assert log.duration == pytest.approx(2.0)
+    np.testing.assert_allclose(log.gnss.lat, [52.1, 52.2])
+    assert [(c.name, c.t) for c in log.mode_changes] == [("ALT_HOLD", 0.0), ("LOITER", 1.5)]
+
+
+# ---------------------------------------------------------------------------------------------
+# real logs
 
 
 @cache
@@ -238,3 +327,50 @@ def test_pymavlink_test_bin_agrees_with_golden_dump() -> None:
     assert [c.name for c in log.mode_changes] == ["MANUAL"]
     assert log.mode_changes[0].t == pytest.approx(column("MODE", "TimeUS")[0] * 1e-6 - t0)
     assert log.params["SERIAL5_BAUD"] == 921600.0
+    # the attitude comes from NKQ1 (logged w, x, y, z): NKF1's Euler angles are the same attitude
+    # with the AHRS trim (AHRS_TRIM_X / _Y, radians) applied, to the 0.01 deg NKF1 is logged in
+    rpy = np.degrees(log.onboard.rpy)
+    trim = np.degrees([log.params["AHRS_TRIM_X"], log.params["AHRS_TRIM_Y"]])
+    np.testing.assert_allclose(rpy[:, 0] - trim[0], column("NKF1", "Roll"), atol=0.02)
+    np.testing.assert_allclose(rpy[:, 1] - trim[1], column("NKF1", "Pitch"), atol=0.02)
+    yaw_err = (rpy[:, 2] - column("NKF1", "Yaw") + 180.0) % 360.0 - 180.0
+    np.testing.assert_allclose(yaw_err, 0.0, atol=0.02)
+    # ENU quaternions (x, y, z, w): the body's nose (FRD x) points along the logged yaw
+    nose = quat_to_matrix(log.onboard.quaternion)[:, :, 0]
+    heading_cw_from_north = np.degrees(np.arctan2(nose[:, 0], nose[:, 1]))
+    err = (heading_cw_from_north - column("NKF1", "Yaw") + 180.0) % 360.0 - 180.0
+    assert np.abs(err).max() < 0.5
+
+
+def test_dataflash_attitude_quaternion_is_read_scalar_first(tmp_path: Path) -> None:
+    # XKQ logs (w, x, y, z); 90 degrees about NED down: the nose points east
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    path = tmp_path / "xkq.bin"
+    path.write_bytes(make_log(2.0, xkq_wxyz=(c, 0.0, 0.0, s)))
+    log = read_log(path)
+    assert log.onboard is not None
+    np.testing.assert_allclose(
+        np.degrees(log.onboard.rpy), np.tile([0.0, 0.0, 90.0], (len(log.onboard), 1)), atol=1e-4
+    )
+    # body -> ENU, (x, y, z, w): the nose is along ENU x (east), the right wing along -y (south)
+    np.testing.assert_allclose(log.onboard.quaternion[0], [1.0, 0.0, 0.0, 0.0], atol=1e-6)  # 180 deg about x
+    r = quat_to_matrix(log.onboard.quaternion[0])
+    np.testing.assert_allclose(r[:, 0], [1.0, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(r[:, 1], [0.0, -1.0, 0.0], atol=1e-6)
+
+
+def test_px4_attitude_quaternions_are_read_scalar_first() -> None:
+    # the onboard solution's attitude is vehicle_attitude's q (logged w, x, y, z), slerped to its
+    # times: its Euler angles agree with the attitude series read from the same topic
+    log = _log("pyulog_samples", "sample_px4_events.ulg")
+    assert log.onboard is not None
+    known = np.isfinite(log.onboard.quaternion).all(axis=1)
+    assert known.sum() > 100
+    on = log.onboard.rpy[known]
+    t = log.onboard.t[known]
+    for k in range(2):
+        np.testing.assert_allclose(on[:, k], np.interp(t, log.attitude.t, log.attitude.rpy[:, k]), atol=0.02)
+    yaw_err = np.angle(
+        np.exp(1j * (on[:, 2] - np.interp(t, log.attitude.t, np.unwrap(log.attitude.rpy[:, 2]))))
+    )
+    assert np.abs(yaw_err).max() < 0.02
