@@ -9,6 +9,9 @@ import pytest
 
 from conftest import shared_path
 from stablecues.cli.main import main
+from stablecues.detection import ImagePairVerifier
+from stablecues.geometry import load_calibration
+from stablecues.verification import VerificationConfig
 
 
 def test_verify_stereo_pair_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -62,3 +65,21 @@ def test_verify_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert "does not exist" in capsys.readouterr().err
     assert main(["verify", "a.png", "b.png", "--calib", "fr1", "--right-a", "x.png"]) == 1
     assert "--right-b" in capsys.readouterr().err
+
+
+def test_kitti_pair_148_m_apart_is_rejected(capsys: pytest.CaptureFixture[str]) -> None:
+    """KITTI 06 frames 435 and 01 are 148 m apart, headings 179 deg apart (its poses): 12 of 69
+    matches fit a fundamental matrix, which DLoopDetector's 12-inlier rule accepts."""
+    d = shared_path("kitti", "seq06_frames")
+    calib = shared_path("calibration", "KITTI04-12.yaml")
+    args = ["verify", str(d / "kitti06-435.png"), str(d / "kitti06-01.png"), "--calib", str(calib)]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "REJECTED by fundamental" in text and "too_few_fundamental_inliers" in text
+    # DLoopDetector's rule (12 inliers, no ratio, classic RANSAC) on the same matches accepts it
+    classic = VerificationConfig(
+        min_fundamental_inliers=12, min_fundamental_ratio=0.0, fundamental_method="ransac"
+    )
+    pair = ImagePairVerifier(load_calibration(calib), classic)
+    res = pair.verify(d / "kitti06-435.png", d / "kitti06-01.png")
+    assert res.verification.accepted and res.verification.n_inliers == 12

@@ -212,3 +212,28 @@ def test_map_points_without_calibration_are_verified(frames: list[Frame]) -> Non
     checked = [d for d in decisions if d.verification is not None]
     assert checked and all(d.verification.method.value == "triangles" for d in checked)
     assert any(d.accepted for d in checked)
+
+
+def test_a_true_loop_in_the_second_island_is_found() -> None:
+    """CamVid revisit frame 144 (second traversal, changed appearance): the best BoW island is a
+    wrong place; the second holds the true loop (frame 3). DLoopDetector verifies only the best
+    and rejects; verifying the best islands finds it, by the most geometric inliers."""
+    from conftest import shared_path
+    from stablecues.datasets import open_dataset
+
+    ds = open_dataset(shared_path("camvid_revisit_dev", "train_drives", "frames"), format="folder")
+    decisions = {}
+    for k in (1, 5):
+        det = LoopDetector(preset("default", {"query": {"islands_verified": k}, "similarity": False}))
+        for i in range(144):
+            det.store(ds[i])
+        decisions[k] = det.process(ds[144])
+    one, five = decisions[1], decisions[5]
+    assert not one.accepted and len(one.checked) == 1 and one.candidate_frame != 3
+    assert five.accepted and five.candidate_frame == 3 and len(five.checked) == 5
+    assert five.verification is not None
+    assert five.verification.n_inliers == max(c.verification.n_inliers for c in five.checked)
+    extras = five.extras()
+    assert extras["checked"][0][0] == five.islands[0][2]  # best island first
+    assert [c[0] for c in extras["checked"]] == [i[2] for i in five.islands[:5]]
+    assert any(f == 3 for f, _ in five.results) and extras["verifier"] == "fundamental"

@@ -118,6 +118,24 @@ def test_classic_verifiers() -> None:
     assert not Verifier(preset("dloop"), camera=CAM).verify(qn, cn).accepted
 
 
+def test_fundamental_inlier_ratio() -> None:
+    """A loop needs max(min_fundamental_inliers, ratio * matches) inliers; with many swapped
+    matches the count passes and the ratio does not."""
+    q, c, _, _ = _scene(6, wrong=0.0, swapped=0.7)
+    loose = Verifier(merge(preset("default"), {"method": "fundamental", "min_fundamental_ratio": 0.0}), CAM)
+    res = loose.verify(q, c)
+    assert res.accepted and res.n_inliers >= 20
+    ratio = res.n_inliers / res.n_matches
+    assert ratio < 0.9
+    need = round(ratio + 0.05, 2)
+    strict = Verifier(merge(loose.config, {"min_fundamental_ratio": need}), CAM).verify(q, c)
+    assert not strict.accepted and strict.status is Status.TOO_FEW_FUNDAMENTAL_INLIERS
+    assert f"need {need:.0%}" in strict.reason
+    for method in ("ransac", "usac"):
+        cfg = merge(loose.config, {"fundamental_method": method})
+        assert Verifier(cfg, CAM).verify(q, c).accepted
+
+
 def test_acceptance_rules() -> None:
     q, c, _, _ = _scene(6, swapped=0.25)  # many wrong matches: some triangles must disagree
     base = Verifier(camera=CAM).verify(q, c)

@@ -30,6 +30,9 @@ class QueryConfig:
             candidate is verified (1: no temporal check).
         temporal_gap: largest gap between the islands of consecutive frames to be consistent.
         max_query_gap: largest gap in frames between consecutive consistent queries.
+        islands_verified: how many islands, best first, are verified (DLoopDetector: 1, the
+            best island's best entry); of those accepted, the one with the most geometric
+            inliers is the loop.
     """
 
     exclude_recent: int = 20
@@ -42,10 +45,13 @@ class QueryConfig:
     temporal_k: int = 3
     temporal_gap: int = 3
     max_query_gap: int = 2
+    islands_verified: int = 1
 
     def __post_init__(self) -> None:
         if self.exclude_recent < 0 or self.max_results < 1 or self.temporal_k < 1:
             raise ConfigError("exclude_recent >= 0, max_results >= 1 and temporal_k >= 1 are required")
+        if self.islands_verified < 1:
+            raise ConfigError(f"islands_verified must be >= 1, got {self.islands_verified}")
 
 
 @dataclass(frozen=True)
@@ -100,38 +106,41 @@ def _mask(name: str | None) -> MaskingConfig | None:
     return None if name is None else MASKING_PRESETS[name]
 
 
-#: preset name -> (masking preset, verification preset, one line of description)
-_PRESETS: dict[str, tuple[str | None, str | None, str]] = {
-    "paper": ("paper", "paper", "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
-    "bow": (None, "dloop", "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),
-    "bow-nogeom": (None, None, "DBoW2 without geometric check"),
-    "mask-only": ("paper", "dloop", "ablation: the paper's hard mask + the baseline's fundamental check"),
-    "triangles-only": (None, "default", "ablation: no mask + noise-aware triangle check with PnP"),
-    "paper-triangles-noise": ("paper", "default", "ablation: hard mask + noise-aware triangle check"),
-    "dilate": ("dilate", "default", "soft mask: static mask dilated + noise-aware triangles"),
-    "patch": ("patch", "default", "soft mask: class over the keypoint's patch + noise-aware triangles"),
-    "dynamic": ("dynamic", "default", "soft mask: drop only dynamic classes + noise-aware triangles"),
+#: preset name -> (masking preset, verification preset, other overrides, one line of description)
+_PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
+    "default": (None, "default", {"query": {"islands_verified": 5, "temporal_k": 1}},
+                "the measured best: no mask, the 5 best islands verified (triangles with 3D, else "
+                "the fundamental matrix with inlier count and ratio), no temporal window"),
+    "paper": ("paper", "paper", {},
+              "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
+    "bow": (None, "dloop", {}, "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),
+    "bow-nogeom": (None, None, {}, "DBoW2 without geometric check"),
+    "mask-only": ("paper", "dloop", {}, "ablation: the paper's hard mask + the baseline's fundamental check"),
+    "triangles-only": (None, "default", {}, "ablation: no mask + noise-aware triangle check with PnP"),
+    "paper-triangles-noise": ("paper", "default", {}, "ablation: hard mask + noise-aware triangle check"),
+    "dilate": ("dilate", "default", {}, "soft mask: static mask dilated + noise-aware triangles"),
+    "patch": ("patch", "default", {}, "soft mask: class over the keypoint's patch + noise-aware triangles"),
+    "dynamic": ("dynamic", "default", {}, "soft mask: drop only dynamic classes + noise-aware triangles"),
 }
 
 #: the configuration used when no preset is named (chosen on the real-data ablation, README).
-DEFAULT_PRESET = "triangles-only"
+DEFAULT_PRESET = "default"
 
 
 def preset_names() -> list[str]:
-    return ["default", *_PRESETS]
+    return list(_PRESETS)
 
 
 def describe_preset(name: str) -> str:
-    if name == "default":
-        return f"the measured best (currently the same as {DEFAULT_PRESET!r})"
-    return _PRESETS[name][2]
+    if name not in _PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known: {', '.join(preset_names())}")
+    return _PRESETS[name][3]
 
 
 def preset(name: str = "default", overrides: dict[str, Any] | None = None) -> DetectorConfig:
     """A named configuration, with optional overrides (unknown keys are rejected)."""
-    key = DEFAULT_PRESET if name == "default" else name
-    if key not in _PRESETS:
+    if name not in _PRESETS:
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(preset_names())}")
-    mask, verif, _ = _PRESETS[key]
-    cfg = DetectorConfig(masking=_mask(mask), verification=_verif(verif))
+    mask, verif, extra, _ = _PRESETS[name]
+    cfg = merge(DetectorConfig(masking=_mask(mask), verification=_verif(verif)), extra)
     return merge(cfg, overrides)

@@ -43,6 +43,21 @@ class Island:
 
 
 @dataclass(frozen=True, eq=False)
+class Checked:
+    """One candidate that geometric verification looked at.
+
+    Attributes:
+        island: the island it is the best entry of.
+        frame: the frame index stored with that entry.
+        verification: the result.
+    """
+
+    island: Island
+    frame: int
+    verification: Verification
+
+
+@dataclass(frozen=True, eq=False)
 class LoopDecision:
     """The detector's answer for one frame.
 
@@ -58,7 +73,12 @@ class LoopDecision:
         nss_factor: score between the frame and the previous one (NaN before there is one).
         island: the best island, or None.
         consistent: consecutive temporally consistent frames including this one.
-        verification: the geometric check's result, when it ran.
+        verification: the geometric check's result for ``candidate``, when it ran.
+        results: ``(frame, normalised score)`` of the database results the query considered,
+            best first (before ``alpha``).
+        islands: the islands that passed ``alpha``, best first, as ``(first frame, last frame,
+            best frame, island score)``.
+        checked: every candidate verified (the best ``islands_verified`` islands), in order.
         n_features: features extracted.
         n_kept: features kept after semantic masking (= n_features without masking).
         mask_fallback: masking kept too few, so every feature was kept.
@@ -77,6 +97,9 @@ class LoopDecision:
     island: Island | None = None
     consistent: int = 0
     verification: Verification | None = None
+    results: tuple[tuple[int, float], ...] = ()
+    islands: tuple[tuple[int, int, int, float], ...] = ()
+    checked: tuple[Checked, ...] = ()
     n_features: int = 0
     n_kept: int = 0
     mask_fallback: bool = False
@@ -96,3 +119,31 @@ class LoopDecision:
         t[:3, :3] = v.rotation
         t[:3, 3] = v.translation
         return t
+
+    def extras(self) -> dict[str, object]:
+        """JSON-ready details of the decision for a run's ``extra.jsonl`` (read by the loss funnel
+        of :mod:`stablecues.evaluation.funnel`)."""
+        out: dict[str, object] = {
+            "n_features": self.n_features,
+            "n_kept": self.n_kept,
+            "mask_fallback": self.mask_fallback,
+            "consistent": self.consistent,
+            "nss": self.nss_factor,
+            "results": [[f, round(s, 6)] for f, s in self.results],
+            "islands": [[a, b, c, round(s, 6)] for a, b, c, s in self.islands],
+            "checked": [[c.frame, c.verification.accepted, c.verification.n_inliers, c.verification.n_matches]
+                        for c in self.checked],
+        }
+        v = self.verification
+        if v is not None:
+            out.update(
+                verifier=str(v.method),
+                verification=str(v.status),
+                reason=v.reason,
+                inliers=v.n_inliers,
+                triangles_agree=v.n_triangles_agree,
+            )
+            pose = self.relative_pose
+            if pose is not None:
+                out["relative_pose"] = pose.tolist()
+        return out

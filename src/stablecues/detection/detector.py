@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from ..types import BowVector, Features, Frame
 from ..verification.result import Verification
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
-from .decision import Island, LoopDecision, Status
+from .decision import Checked, Island, LoopDecision, Status
 from .prepare import FramePreparer, PreparedFrame, Segmenter
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ def compute_islands(ids: np.ndarray, scores: np.ndarray, gap: int) -> list[Islan
 class _Query:
     """What the query stage found for one frame (steps 3-4).
 
-    ``status`` is the rejecting stage, or None when ``candidate`` must be verified.
+    ``status`` is the rejecting stage, or None when the islands must be verified.
     """
 
     status: Status | None = None
@@ -77,6 +77,9 @@ class _Query:
     nss_factor: float = math.nan
     island: Island | None = None
     consistent: int = 0
+    results: list[tuple[int, float]] = field(default_factory=list)
+    islands: list[Island] = field(default_factory=list)
+    raw_of: dict[int, float] = field(default_factory=dict)
 
 
 class LoopDetector:
@@ -195,10 +198,11 @@ class LoopDetector:
         found = self._query(prep.bow, frame, entry)
         timings["query"] = (time.perf_counter() - t) * 1e3
         status = found.status
-        verification = None
+        verification: Verification | None = None
+        checked: tuple[Checked, ...] = ()
         if status is None:
             t = time.perf_counter()
-            status, verification = self._verify(prep, found.candidate)
+            status, verification, checked = self._verify(prep, found)
             timings["verify"] = (time.perf_counter() - t) * 1e3
         if store:
             self._store(frame, prep)
@@ -207,12 +211,16 @@ class LoopDetector:
         confidence = found.score
         if verification is not None and self.config.confidence == "inliers":
             confidence = float(verification.n_inliers) + min(confidence, 0.999)
+        frames = self._entry_frames
         return LoopDecision(
             frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
-            candidate=cand, candidate_frame=self._entry_frames[cand] if cand >= 0 else -1,
+            candidate=cand, candidate_frame=frames[cand] if cand >= 0 else -1,
             raw_score=found.raw_score, score=found.score, confidence=confidence,
             nss_factor=found.nss_factor, island=found.island, consistent=found.consistent,
-            verification=verification, n_features=prep.n_features, n_kept=len(prep.features),
+            verification=verification,
+            results=tuple((frames[e], sc) for e, sc in found.results),
+            islands=tuple((frames[i.first], frames[i.last], frames[i.best], i.score) for i in found.islands),
+            checked=checked, n_features=prep.n_features, n_kept=len(prep.features),
             mask_fallback=prep.mask_fallback, timings=timings,
         )
 
@@ -223,12 +231,26 @@ class LoopDetector:
         self._store(frame, prep)
         return entry
 
-    def _verify(self, prep: PreparedFrame, candidate: int) -> tuple[Status, Verification | None]:
+    def _verify(
+        self, prep: PreparedFrame, found: _Query
+    ) -> tuple[Status, Verification | None, tuple[Checked, ...]]:
+        """Step 5: verify the best ``islands_verified`` islands; the accepted one with the most
+        geometric inliers is the loop (``found`` is updated to name it)."""
         if self.config.verification is None:
-            return Status.LOOP_DETECTED, None
+            return Status.LOOP_DETECTED, None, ()
         verifier = self.preparer.verifier(prep.calibration)
-        result = verifier.verify_entry(prep.view, self.db.entry(candidate))
-        return (Status.LOOP_DETECTED if result.accepted else Status.NO_GEOMETRICAL_CONSISTENCY), result
+        checked = []
+        for island in found.islands[: self.config.query.islands_verified]:
+            result = verifier.verify_entry(prep.view, self.db.entry(island.best))
+            checked.append(Checked(island, self._entry_frames[island.best], result))
+        accepted = [c for c in checked if c.verification.accepted]
+        if not accepted:
+            return Status.NO_GEOMETRICAL_CONSISTENCY, checked[0].verification, tuple(checked)
+        best = max(accepted, key=lambda c: (c.verification.n_inliers, c.island.best_score))
+        if best.island is not found.island:
+            found.candidate, found.island = best.island.best, best.island
+            found.score, found.raw_score = best.island.best_score, found.raw_of[best.island.best]
+        return Status.LOOP_DETECTED, best.verification, tuple(checked)
 
     def _store(self, frame: Frame, prep: PreparedFrame) -> None:
         t = time.perf_counter()
@@ -272,16 +294,18 @@ class LoopDetector:
                 out.status = Status.LOW_NSS_FACTOR
                 return out
         norm = raw / ns
+        out.results = [(int(e), float(v)) for e, v in zip(ids, norm, strict=True)]
+        out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
         ok = norm >= q.alpha
         best = int(np.argmax(norm))
         out.candidate, out.raw_score, out.score = int(ids[best]), float(raw[best]), float(norm[best])
         if not ok.any():
             out.status = Status.LOW_SCORES
             return out
-        islands = compute_islands(ids[ok], norm[ok], q.island_gap)
-        island = max(islands, key=lambda i: i.score)
+        out.islands = sorted(compute_islands(ids[ok], norm[ok], q.island_gap), key=lambda i: -i.score)
+        island = out.islands[0]
         out.consistent = self._update_window(island, entry)
-        out.candidate, out.raw_score = island.best, float(raw[ids == island.best][0])
+        out.candidate, out.raw_score = island.best, out.raw_of[island.best]
         out.score, out.island = island.best_score, island
         if out.consistent < q.temporal_k:
             out.status = Status.NO_TEMPORAL_CONSISTENCY

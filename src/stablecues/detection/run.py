@@ -186,25 +186,7 @@ def _initial_similarity(config: DetectorConfig, n: int, sim_path: Path, resume: 
 
 
 def _write_decision(writer: RunWriter, d: LoopDecision, timestamp: float) -> None:
-    """One row of ``decisions.csv`` and its extras (features, verification) for ``extra.jsonl``."""
-    extra: dict[str, Any] = {
-        "n_features": d.n_features,
-        "n_kept": d.n_kept,
-        "mask_fallback": d.mask_fallback,
-        "consistent": d.consistent,
-        "nss": d.nss_factor,
-    }
-    v = d.verification
-    if v is not None:
-        extra.update(
-            verifier=str(v.method),
-            verification=str(v.status),
-            reason=v.reason,
-            inliers=int(np.count_nonzero(v.inliers)),
-            triangles_agree=v.n_triangles_agree,
-        )
-        if d.relative_pose is not None:
-            extra["relative_pose"] = d.relative_pose.tolist()
+    """One row of ``decisions.csv`` and its extras (:meth:`LoopDecision.extras`) for ``extra.jsonl``."""
     writer.add(
         d.frame_index,
         timestamp,
@@ -214,7 +196,7 @@ def _write_decision(writer: RunWriter, d: LoopDecision, timestamp: float) -> Non
         d.raw_score if d.candidate >= 0 else float("nan"),
         d.accepted,
         d.timings,
-        extra,
+        d.extras(),
     )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -193,6 +194,7 @@ class Verifier:
             threshold_px=cfg.fundamental_threshold_px,
             confidence=cfg.fundamental_confidence,
             max_iterations=cfg.fundamental_iterations,
+            method=cfg.fundamental_method,
         )
         ctx.timings["fundamental"] = (time.perf_counter() - t) * 1e3
         n_in = int(inliers.sum())
@@ -202,10 +204,14 @@ class Verifier:
                 f"no fundamental matrix from {len(matches)} matches{note}",
                 inliers=inliers,
             )
-        accepted = n_in >= cfg.min_fundamental_inliers
+        need = max(cfg.min_fundamental_inliers, math.ceil(cfg.min_fundamental_ratio * len(matches) - 1e-9))
+        accepted = n_in >= need
+        ratio = ""
+        if cfg.min_fundamental_ratio:
+            ratio = f" ({n_in / len(matches):.0%}, need {cfg.min_fundamental_ratio:.0%})"
         return ctx.finish(
             Status.ACCEPTED if accepted else Status.TOO_FEW_FUNDAMENTAL_INLIERS,
-            f"{n_in} of {len(matches)} matches fit a fundamental matrix, "
+            f"{n_in} of {len(matches)} matches fit a fundamental matrix{ratio}, "
             f"need {cfg.min_fundamental_inliers}{note}",
             inliers=inliers,
             fundamental=f,
