@@ -237,3 +237,31 @@ def test_a_true_loop_in_the_second_island_is_found() -> None:
     assert extras["checked"][0][0] == five.islands[0][2]  # best island first
     assert [c[0] for c in extras["checked"]] == [i[2] for i in five.islands[:5]]
     assert any(f == 3 for f, _ in five.results) and extras["verifier"] == "fundamental"
+
+
+def test_monocular_stream_triangulates_and_resumes(tmp_path: Path) -> None:
+    """A monocular drive (no calibration: the focal is guessed from the image size) gets 3D from
+    its neighbouring frames; a detector reopened on its map continues exactly as one that never
+    stopped, because the map's latest entries become the next frame's neighbours."""
+    from stablecues.synthetic import SyntheticTown, SyntheticTownConfig
+
+    town = SyntheticTown(SyntheticTownConfig(frames=36, width=256, height=192, loops=1, seed=1, noise=1.0))
+    stream = [Frame(index=f.index, name=str(f.index), timestamp=float(f.index), image=f.image)
+              for f in (town.frame(i, right=False, depth=False, labels=False) for i in range(36))]
+    cfg = preset("mono-triangles", {"similarity": False, "query": {"exclude_recent": 5}})
+    det = LoopDetector(cfg)
+    whole = [det.process(f) for f in stream]
+    sources = {d.points_source for d in whole}
+    assert "mono-guessed-focal" in sources
+    assert all(d.extras()["points"] == d.points_source for d in whole)
+    stored = [det.db.entry(k).meta for k in range(len(det))]
+    assert any(m.get("points") == "mono-guessed-focal" and "sigma_depth" in m for m in stored)
+    db = tmp_path / "map.sqlite"
+    first = LoopDetector(cfg, database=db)
+    got = [first.process(f) for f in stream[:20]]
+    first.close()
+    second = LoopDetector(cfg, database=db)
+    got += [second.process(f) for f in stream[20:]]
+    assert [(d.status, d.candidate_frame, d.points_source) for d in got] == [
+        (d.status, d.candidate_frame, d.points_source) for d in whole
+    ]

@@ -106,3 +106,51 @@ def test_side_sigma_by_hand() -> None:
     # u = (-1, 0, 0); r0 = (-0.25, 0, 1): u.r0 = 0.25; r1 = (0.25, 0, 1): u.r1 = -0.25
     expected = np.sqrt(0.1**2 * 0.25**2 * 2 + 0.01**2 + 0.02**2)
     assert s[0] == pytest.approx(expected)
+
+
+def _relative(p: Points3D) -> Points3D:
+    return Points3D(p.xyz, p.sigma_depth, p.sigma_lateral, metric=False)
+
+
+def _scaled(points: Points3D, s: float) -> Points3D:
+    return Points3D((points.xyz * s).astype(np.float32), (points.sigma_depth * s).astype(np.float32),
+                    (points.sigma_lateral * s).astype(np.float32), metric=False)
+
+
+SIMILAR = TriangleConfig(tolerance="similar")
+
+
+def test_a_scaled_and_rotated_copy_is_similar() -> None:
+    """Monocular reconstructions differ by a similarity: same shapes, one scale for all."""
+    cand = _scene(seed=3)
+    query = _rigid(cand, 7)
+    q = _scaled(_noisy(query, 1), 0.37)  # the query's reconstruction in its own unit
+    c = _relative(_noisy(cand, 2))
+    res = check_triangles(q, c, SIMILAR)
+    assert res.n_checked == 10 and res.n_agree >= 9
+    scales = [t.scale for t in res.triangles if t.agree]
+    assert np.allclose(scales, 0.37, rtol=0.1)
+    # the metric check of the same points fails: the sides differ by the scale
+    assert check_triangles(q, c, TriangleConfig()).n_agree == 0
+
+
+def test_a_perturbed_copy_is_not_similar() -> None:
+    cand = _scene(seed=4)
+    query = _rigid(cand, 8)
+    rng = np.random.default_rng(0)
+    warped = query.copy()
+    warped[:, :2] += rng.normal(0, 0.4, (len(query), 2))  # a different shape (40 cm per point)
+    res = check_triangles(_scaled(_noisy(warped, 1), 2.0), _relative(_noisy(cand, 2)), SIMILAR)
+    assert res.n_checked >= 5 and res.n_agree <= 1
+
+
+def test_similar_shapes_at_another_scale_do_not_agree() -> None:
+    """Two triangles of the right shape but of scales 1 and 3: one similarity cannot map both."""
+    cand = _scene(seed=5)
+    q = _noisy(_rigid(cand, 9), 1)
+    xyz = q.xyz.copy()
+    xyz[3:6] *= 3.0  # the second triangle (matches 3-5), alone, is three times larger
+    q3 = Points3D(xyz, q.sigma_depth, q.sigma_lateral, metric=False)
+    config = TriangleConfig(tolerance="similar", n_triangles=3, min_side_sigma=0.0, min_angle_deg=0.0)
+    res = check_triangles(q3, _relative(_noisy(cand, 2)), config)
+    assert [t.agree for t in res.triangles] == [True, False, True]

@@ -185,3 +185,31 @@ def test_settings_are_validated() -> None:
     with pytest.raises(ConfigError, match="camera"):
         Verifier(VerificationConfig())
     assert Verifier(preset("paper")).config.tolerance == "relative"  # no PnP gate: no camera needed
+
+
+def _monocular(view: View, scale: float) -> View:
+    p = view.points
+    assert p is not None
+    pts = Points3D((p.xyz * scale).astype(np.float32), (p.sigma_depth * scale).astype(np.float32),
+                   (p.sigma_lateral * scale).astype(np.float32), metric=False)
+    return View(view.features, view.fvec, pts)
+
+
+def test_monocular_points_are_checked_by_similar_triangles() -> None:
+    q, c, _, _ = _scene(7)
+    v = Verifier(preset("default"), camera=CAM, noise=NOISE)
+    res = v.verify(_monocular(q, 0.4), _monocular(c, 2.5))
+    assert res.accepted and res.method is Method.SIMILAR_TRIANGLES and not res.fallback
+    assert "similar triangles agree" in res.reason
+    assert res.rotation is not None  # PnP on the candidate's own reconstruction
+    qn, cn, _, _ = _scene(7, rigid=False)
+    bad = v.verify(_monocular(qn, 0.4), _monocular(cn, 2.5))
+    assert not bad.accepted
+    # one metric side and one monocular side: only shapes can be compared
+    assert v.verify(q, _monocular(c, 2.5)).method is Method.SIMILAR_TRIANGLES
+
+
+def test_monocular_candidate_without_query_points_falls_back_to_fundamental() -> None:
+    q, c, _, _ = _scene(8)
+    res = Verifier(preset("default"), camera=CAM, noise=NOISE).verify(View(q.features), _monocular(c, 2.0))
+    assert res.method is Method.FUNDAMENTAL and res.fallback

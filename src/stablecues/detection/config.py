@@ -55,6 +55,30 @@ class QueryConfig:
 
 
 @dataclass(frozen=True)
+class MonocularConfig:
+    """3D for frames without stereo, depth or map points: triangulated against a neighbour.
+
+    Attributes:
+        neighbours: how many of the latest frames of the stream are tried, newest first; the
+            first with enough parallax and essential-matrix inliers gives the points.
+        ratio: Lowe's ratio of the matches with the neighbour (frame-to-frame: strict).
+        min_inliers: essential-matrix inliers a neighbour needs.
+        min_median_angle_deg: median triangulation angle a neighbour needs (parallax).
+        threshold_px: essential-matrix RANSAC threshold, pixels.
+    """
+
+    neighbours: int = 3
+    ratio: float = 0.75
+    min_inliers: int = 30
+    min_median_angle_deg: float = 1.0
+    threshold_px: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.neighbours < 1 or not 0 < self.ratio <= 1:
+            raise ConfigError(f"monocular: neighbours >= 1 and ratio in (0, 1] are required, got {self}")
+
+
+@dataclass(frozen=True)
 class DetectorConfig:
     """Everything the loop detector does, as one frozen value.
 
@@ -72,6 +96,8 @@ class DetectorConfig:
         query: database query, islands and temporal consistency.
         similarity: keep each frame's scores against all earlier entries (for the report's
             similarity matrix).
+        monocular: triangulate frames that have no other 3D against a neighbouring frame of
+            the stream (the triangle check then compares shapes), or None for no such 3D.
         confidence: what ranks accepted loops (the score precision-recall curves sweep):
             "inliers", the geometric inliers of the verified loop (plus the normalised BoW
             score, below 1, to break ties), or "bow", the normalised BoW score alone (as
@@ -87,6 +113,7 @@ class DetectorConfig:
     verification: VerificationConfig | None = field(default_factory=VerificationConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     similarity: bool = True
+    monocular: MonocularConfig | None = None
     confidence: Literal["inliers", "bow"] = "inliers"
 
     def __post_init__(self) -> None:
@@ -111,6 +138,9 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
     "default": (None, "default", {"query": {"islands_verified": 5, "temporal_k": 1}},
                 "the measured best: no mask, the 5 best islands verified (triangles with 3D, else "
                 "the fundamental matrix with inlier count and ratio), no temporal window"),
+    "mono-triangles": (None, "default", {"query": {"islands_verified": 5, "temporal_k": 1}, "monocular": {}},
+                       "the default + monocular 3D: frames without other 3D triangulated against a "
+                       "neighbour, loops checked by similar triangles where they can be formed"),
     "paper": ("paper", "paper", {},
               "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
     "bow": (None, "dloop", {}, "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),

@@ -79,6 +79,8 @@ class LoopDecision:
         islands: the islands that passed ``alpha``, best first, as ``(first frame, last frame,
             best frame, island score)``.
         checked: every candidate verified (the best ``islands_verified`` islands), in order.
+        points_source: where this frame's 3D points came from ("map", "stereo", "depth",
+            "mono", "mono-guessed-focal"), or None without 3D.
         n_features: features extracted.
         n_kept: features kept after semantic masking (= n_features without masking).
         mask_fallback: masking kept too few, so every feature was kept.
@@ -100,6 +102,7 @@ class LoopDecision:
     results: tuple[tuple[int, float], ...] = ()
     islands: tuple[tuple[int, int, int, float], ...] = ()
     checked: tuple[Checked, ...] = ()
+    points_source: str | None = None
     n_features: int = 0
     n_kept: int = 0
     mask_fallback: bool = False
@@ -129,6 +132,7 @@ class LoopDecision:
             "mask_fallback": self.mask_fallback,
             "consistent": self.consistent,
             "nss": self.nss_factor,
+            "points": self.points_source,
             "results": [[f, round(s, 6)] for f, s in self.results],
             "islands": [[a, b, c, round(s, 6)] for a, b, c, s in self.islands],
             "checked": [[c.frame, c.verification.accepted, c.verification.n_inliers, c.verification.n_matches]

@@ -29,6 +29,7 @@ import numpy as np
 from ..database import Database
 from ..errors import ConfigError
 from ..geometry.camera import Calibration
+from ..geometry.points import relative_points_meta
 from ..types import BowVector, Features, Frame
 from ..verification.result import Verification
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
@@ -127,6 +128,10 @@ class LoopDetector:
         self._window_n = 0
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
+        if self.config.monocular is not None:  # the latest entries are the next frame's neighbours
+            for k in range(max(0, n - self.config.monocular.neighbours), n):
+                e = self.db.entry(k)
+                self.preparer.remember(e.features, e.fvec)
         if metas:
             last = metas[-1]
             isl = last.get("window_island")
@@ -220,7 +225,8 @@ class LoopDetector:
             verification=verification,
             results=tuple((frames[e], sc) for e, sc in found.results),
             islands=tuple((frames[i.first], frames[i.last], frames[i.best], i.score) for i in found.islands),
-            checked=checked, n_features=prep.n_features, n_kept=len(prep.features),
+            checked=checked, points_source=prep.points_source, n_features=prep.n_features,
+            n_kept=len(prep.features),
             mask_fallback=prep.mask_fallback, timings=timings,
         )
 
@@ -259,6 +265,8 @@ class LoopDetector:
             meta.update(window_island=list(self._window_island), window_n=self._window_n,
                         window_query=self._window_query)
         xyz = None if prep.points is None else prep.points.xyz
+        if prep.points is not None and not prep.points.metric and prep.points_source is not None:
+            meta.update(relative_points_meta(prep.points, prep.points_source))
         self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
                     pose=frame.pose, meta=meta)
         self._timestamps.append(float(frame.timestamp))

@@ -10,7 +10,9 @@ command line is checked exactly as the detector would check it:
 3. the BoW vector and the direct index from the vocabulary;
 4. 3D points per kept feature, from the first source the frame has: map points handed in,
    a stereo pair (a raw pair is rectified inside the lifter, whose remap tables are cached per
-   calibration, and the points rotated back into the raw left camera), or a depth image.
+   calibration, and the points rotated back into the raw left camera), a depth image, or
+   (``DetectorConfig.monocular``) triangulation against a neighbouring frame of the stream, with
+   the calibration's camera or, without one, a focal length guessed from the image size.
 
 It also owns what depends only on the calibration: the 3D noise model and the
 :class:`~stablecues.verification.Verifier` for frames of that camera.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -32,11 +35,13 @@ from ..geometry.camera import Calibration
 from ..geometry.depth import DepthConfig, lift_depth, lift_map_points
 from ..geometry.points import NoiseModel, Points3D
 from ..geometry.stereo import StereoConfig, StereoLifter
+from ..geometry.twoview import TwoViewConfig, guess_camera, triangulate_two_view
 from ..imageio import to_grey
 from ..semantics.classes import NUM_CLASSES
 from ..semantics.inference import SegmentationModel, SegmentationResult
 from ..semantics.masking import select_features
 from ..types import BowVector, Features, FeatureVector, Frame
+from ..verification.matching import match_features
 from ..verification.verifier import Verifier, View
 from ..vocabulary import Vocabulary
 from .config import DetectorConfig
@@ -60,7 +65,10 @@ class PreparedFrame:
         bow: their bag-of-words vector.
         fvec: their direct index.
         points: 3D point per kept feature in the frame's camera, or None without 3D.
-        calibration: the calibration the frame was prepared with (its own, else the default).
+        calibration: the calibration the frame was prepared with (its own, else the default;
+            for monocular 3D without either, one with a focal length guessed from the image size).
+        points_source: where the 3D points come from: "map", "stereo", "depth", "mono",
+            "mono-guessed-focal", or None without 3D.
         n_features: features before semantic selection.
         mask_fallback: masking kept too few features, so every feature was kept.
         timings: milliseconds per stage (extract, segment, mask, transform, lift).
@@ -74,6 +82,7 @@ class PreparedFrame:
     calibration: Calibration | None
     n_features: int
     mask_fallback: bool
+    points_source: str | None = None
     timings: dict[str, float] = field(default_factory=dict)
     t_start: float = 0.0
 
@@ -132,6 +141,9 @@ class FramePreparer:
         self._segmenter = segmenter
         self._lifters: dict[int, StereoLifter] = {}
         self._verifiers: dict[int, Verifier] = {}
+        self._guessed: dict[tuple[int, int], Calibration] = {}
+        mono = config.monocular
+        self._recent: deque[tuple[Features, FeatureVector]] = deque(maxlen=mono.neighbours if mono else 1)
 
     # ------------------------------------------------------------------ per calibration
     def calibration_of(self, frame: Frame) -> Calibration | None:
@@ -207,14 +219,17 @@ class FramePreparer:
         features, keep, fallback = self._select(frame, features, laps)
         bow, fvec = self.vocabulary.transform(features.descriptors)
         laps("transform")
-        points = None
+        points, source = None, None
         if self.config.verification is not None:
             if frame.points3d is not None and keep is not None:
                 frame = dataclasses.replace(frame, points3d=np.asarray(frame.points3d)[keep])
-            points = self._lift(frame, features, calib)
-            laps("lift")
-        return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, laps.timings,
-                             laps.start)
+            points, source = self._lift(frame, features, calib)
+            if points is None and self.config.monocular is not None:
+                points, source, calib = self._triangulate(features, fvec, calib)
+            self.remember(features, fvec)
+            laps("lift")  # 3D from whichever source: map points, stereo, depth or triangulation
+        return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, source,
+                             laps.timings, laps.start)
 
     def _select(
         self, frame: Frame, features: Features, laps: _Laps
@@ -246,23 +261,70 @@ class FramePreparer:
             self._segmenter = lambda image: model.predict(image, samples)
         return self._segmenter(frame.image)
 
-    def _lift(self, frame: Frame, features: Features, calib: Calibration | None) -> Points3D | None:
-        """3D points of the features in the frame's camera, or None when the frame has no 3D."""
+    def _lift(
+        self, frame: Frame, features: Features, calib: Calibration | None
+    ) -> tuple[Points3D | None, str | None]:
+        """3D points of the features in the frame's camera and their source, or (None, None)."""
         try:
             if frame.points3d is not None:
                 pts = np.asarray(frame.points3d)
                 if pts.shape != (len(features), 3):
                     raise InputError(f"points3d has shape {pts.shape}, expected ({len(features)}, 3), "
                                      "one per feature")
-                return lift_map_points(pts, self.noise(calib), octaves=features.octaves)
+                return lift_map_points(pts, self.noise(calib), octaves=features.octaves), "map"
             if calib is None:
-                return None
+                return None, None
             if frame.right is not None and calib.is_stereo:
-                return self.lifter(calib).lift(features, frame.image, frame.right)
+                return self.lifter(calib).lift(features, frame.image, frame.right), "stereo"
             if frame.depth is not None:
                 raw = np.issubdtype(np.asarray(frame.depth).dtype, np.integer)  # a 16-bit PNG as read
-                return lift_depth(features, frame.depth, calib.left,
-                                  depth_scale=calib.depth_scale if raw else None, config=self.depth_config)
+                points = lift_depth(features, frame.depth, calib.left,
+                                    depth_scale=calib.depth_scale if raw else None, config=self.depth_config)
+                return points, "depth"
         except InputError as exc:
             raise InputError(f"frame {frame.index} ({frame.name}): {exc}") from None
-        return None
+        return None, None
+
+    # ------------------------------------------------------------------ monocular 3D
+    def remember(self, features: Features, fvec: FeatureVector) -> None:
+        """Keep a frame as a possible neighbour of the next ones (the detector refills this
+        from the map's latest entries when it reopens one)."""
+        self._recent.appendleft((features, fvec))
+
+    def camera_for(self, calib: Calibration | None, image_size: tuple[int, int]) -> tuple[Calibration, bool]:
+        """The calibration for monocular triangulation: the frame's own, else one with a focal
+        guessed from the image size (cached per size); and whether it was guessed."""
+        if calib is not None:
+            return calib, False
+        guessed = self._guessed.get(image_size)
+        if guessed is None:
+            guessed = self._guessed[image_size] = Calibration(left=guess_camera(*image_size),
+                                                             source="focal guessed from the image size")
+        return guessed, True
+
+    def _triangulate(
+        self, features: Features, fvec: FeatureVector, calib: Calibration | None
+    ) -> tuple[Points3D | None, str | None, Calibration | None]:
+        """Points of the features from the newest neighbour with enough parallax, or None."""
+        mono = self.config.monocular
+        if mono is None or not len(features) or not self._recent:
+            return None, None, calib
+        cam_calib, guessed = self.camera_for(calib, features.image_size)
+        settings = TwoViewConfig(threshold_px=mono.threshold_px, min_inliers=mono.min_inliers,
+                                 min_median_angle_deg=mono.min_median_angle_deg)
+        for nb_features, nb_fvec in self._recent:
+            matches = match_features(features, nb_features, fvec, nb_fvec, ratio=mono.ratio)
+            if len(matches) < mono.min_inliers:
+                continue
+            two = triangulate_two_view(
+                features.keypoints[matches.query], nb_features.keypoints[matches.candidate],
+                cam_calib.left, settings, octaves=features.octaves[matches.query],
+            )
+            if not two.ok:
+                continue
+            points = Points3D.empty(len(features))
+            xyz, sd, sl = points.xyz.copy(), points.sigma_depth.copy(), points.sigma_lateral.copy()
+            xyz[matches.query], sd[matches.query], sl[matches.query] = (
+                two.points.xyz, two.points.sigma_depth, two.points.sigma_lateral)
+            return Points3D(xyz, sd, sl, metric=False), "mono-guessed-focal" if guessed else "mono", cam_calib
+        return None, None, calib

@@ -13,6 +13,7 @@ between points (the triangle check) without storing a full 3x3 covariance:
 
 from __future__ import annotations
 
+import base64
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,14 @@ import numpy as np
 from ..errors import ConfigError, InputError, check_array
 from .camera import Calibration
 
-__all__ = ["NoiseModel", "Points3D", "KINECT_DEPTH_COEFF", "STEREO_DISPARITY_SIGMA"]
+__all__ = [
+    "KINECT_DEPTH_COEFF",
+    "STEREO_DISPARITY_SIGMA",
+    "NoiseModel",
+    "Points3D",
+    "relative_points_meta",
+    "relative_points_from_meta",
+]
 
 #: Depth noise of a structured-light Kinect (v1): sigma_z = 1.425e-3 * z**2 metres
 #: (Khoshelham & Elberink, "Accuracy and resolution of Kinect depth data", Sensors 2012: the
@@ -144,11 +152,15 @@ class Points3D:
         xyz: (N, 3) float32 coordinates in metres in the camera frame; NaN rows are unknown.
         sigma_depth: (N,) float32 standard deviation of depth (z) in metres.
         sigma_lateral: (N,) float32 standard deviation across the viewing ray in metres.
+        metric: True when the coordinates are in metres (stereo, depth, a SLAM map); False for a
+            monocular reconstruction, whose unit (the baseline to its neighbour) is unknown:
+            only shapes can be compared then.
     """
 
     xyz: np.ndarray
     sigma_depth: np.ndarray
     sigma_lateral: np.ndarray
+    metric: bool = True
 
     def __post_init__(self) -> None:
         check_array("points3d", self.xyz, dtype=np.float32, shape=(None, 3))
@@ -182,4 +194,33 @@ class Points3D:
     def subset(self, index: np.ndarray) -> Points3D:
         """Points selected by a boolean mask or an integer index array."""
         index = np.asarray(index)
-        return Points3D(self.xyz[index], self.sigma_depth[index], self.sigma_lateral[index])
+        return Points3D(self.xyz[index], self.sigma_depth[index], self.sigma_lateral[index], self.metric)
+
+
+def relative_points_meta(points: Points3D, source: str) -> dict[str, object]:
+    """What a map entry keeps beside the coordinates of monocular (non-metric) points: their
+    source and their depth sigmas (float16, base64), which depend on each point's
+    triangulation angle and so cannot be recomputed from the depth alone."""
+    sigma = np.nan_to_num(points.sigma_depth, nan=np.inf).astype("<f2")
+    return {"points": source, "sigma_depth": base64.b64encode(sigma.tobytes()).decode("ascii")}
+
+
+def relative_points_from_meta(
+    xyz: np.ndarray, meta: dict[str, object], model: NoiseModel, octaves: np.ndarray | None = None
+) -> Points3D | None:
+    """The monocular points of a map entry (see :func:`relative_points_meta`), or None when the
+    entry's points are metric (or its record is not one of ours)."""
+    source, packed = meta.get("points"), meta.get("sigma_depth")
+    if not (isinstance(source, str) and source.startswith("mono") and isinstance(packed, str)):
+        return None
+    try:
+        sigma = np.frombuffer(base64.b64decode(packed, validate=True), "<f2").astype(np.float64)
+    except ValueError:
+        return None
+    if sigma.shape != (np.asarray(xyz).shape[0],):
+        return None
+    sigma[~np.isfinite(sigma)] = np.nan
+    pts = model.points(xyz, octaves, sigma_depth=sigma)
+    valid = np.isfinite(sigma)
+    sd = np.where(valid, pts.sigma_depth, np.nan).astype(np.float32)
+    return Points3D(pts.xyz, sd, pts.sigma_lateral, metric=False)

@@ -22,10 +22,18 @@ Tolerance on each side's difference ``delta = L_query - L_candidate``:
   triangle's three sides).
 * ``"relative"`` (the paper, 2 %): ``|delta| <= relative_tolerance * (L_query + L_candidate) / 2``.
   With stereo depth noise of 3-10 % (METHOD.md section 3) it rejects most correct triangles.
+* ``"similar"``: similar triangles, for monocular points whose scale is unknown (each frame's
+  reconstruction has its own). The triangle's scale ``s = P_query / P_candidate`` (ratio of the
+  perimeters) is fitted, and each side must satisfy ``|L_query - s L_candidate| <= k_sigma *
+  sqrt(sigma_q**2 + s**2 sigma_c**2)``: the shapes agree. All correct matches share one scale
+  (one similarity transform maps the candidate's reconstruction onto the query's), so a triangle
+  also agrees only when its ``log s`` is within ``k_sigma`` of its own noise from the median
+  ``log s`` of the triangles whose shapes agree.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -36,7 +44,7 @@ from .points import Points3D
 
 __all__ = ["TriangleConfig", "Triangle", "TriangleCheck", "check_triangles", "side_sigma"]
 
-_TOLERANCES = ("noise", "relative")
+_TOLERANCES = ("noise", "relative", "similar")
 
 
 @dataclass(frozen=True)
@@ -45,7 +53,8 @@ class TriangleConfig:
 
     Attributes:
         n_triangles: T, the number of triangles checked (the paper's user setting).
-        tolerance: ``"noise"`` (k-sigma from propagated 3D noise) or ``"relative"`` (paper).
+        tolerance: ``"noise"`` (k-sigma from propagated 3D noise), ``"relative"`` (paper) or
+            ``"similar"`` (scale-free shapes with propagated noise, for monocular points).
         k_sigma: gate in standard deviations for the noise tolerance.
         relative_tolerance: allowed relative difference for the relative tolerance (0.02).
         min_angle_deg: smallest interior angle, in both frames; a sliver triangle's sides are
@@ -89,6 +98,8 @@ class Triangle:
         sides_candidate: the same sides in the candidate frame, metres.
         allowed: largest allowed ``|difference|`` of each side, metres.
         agree: True when every side's difference is within its allowed difference.
+        scale: ``"similar"`` tolerance: the fitted scale candidate -> query (1 otherwise).
+        log_scale_sigma: ``"similar"``: standard deviation of ``log(scale)`` (0 otherwise).
     """
 
     matches: tuple[int, int, int]
@@ -96,6 +107,8 @@ class Triangle:
     sides_candidate: tuple[float, float, float]
     allowed: tuple[float, float, float]
     agree: bool
+    scale: float = 1.0
+    log_scale_sigma: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -104,6 +117,7 @@ class Triangle:
             "sides_candidate": list(self.sides_candidate),
             "allowed": list(self.allowed),
             "agree": self.agree,
+            "scale": self.scale,
         }
 
 
@@ -230,29 +244,51 @@ def _compare(
     current: list[int], pos: list[int], q: _Vertices, c: _Vertices, config: TriangleConfig
 ) -> Triangle:
     """The triangle of usable matches ``current`` measured in both frames, its sides compared."""
-    sides_q: list[float] = []
-    sides_c: list[float] = []
+    pairs = ((current[0], current[1]), (current[1], current[2]), (current[2], current[0]))
+    measured = [(q.side(a, b), c.side(a, b)) for a, b in pairs]
+    sides_q = [lq for (lq, _), _ in measured]
+    sides_c = [lc for _, (lc, _) in measured]
+    scale, log_sigma = 1.0, 0.0
+    if config.tolerance == "similar":
+        pq, pc = sum(sides_q), sum(sides_c)
+        scale = pq / pc if pc > 0 else math.inf
+        sq_p = math.sqrt(sum(sq * sq for (_, sq), _ in measured))
+        sc_p = math.sqrt(sum(sc * sc for _, (_, sc) in measured))
+        log_sigma = math.hypot(sq_p / pq, sc_p / pc) if pq > 0 and pc > 0 else math.inf
     allowed: list[float] = []
-    agree = True
-    for a, b in ((current[0], current[1]), (current[1], current[2]), (current[2], current[0])):
-        lq, sq = q.side(a, b)
-        lc, sc = c.side(a, b)
-        tol = (
-            config.k_sigma * math.sqrt(sq * sq + sc * sc)
-            if config.tolerance == "noise"
-            else config.relative_tolerance * 0.5 * (lq + lc)
-        )
-        sides_q.append(lq)
-        sides_c.append(lc)
+    agree = math.isfinite(scale)
+    for (lq, sq), (lc, sc) in measured:
+        if config.tolerance == "noise":
+            tol = config.k_sigma * math.sqrt(sq * sq + sc * sc)
+        elif config.tolerance == "similar":
+            tol = config.k_sigma * math.sqrt(sq * sq + scale * scale * sc * sc)
+        else:
+            tol = config.relative_tolerance * 0.5 * (lq + lc)
         allowed.append(tol)
-        agree = agree and abs(lq - lc) <= tol
+        agree = agree and abs(lq - scale * lc) <= tol
     return Triangle(
         matches=(pos[current[0]], pos[current[1]], pos[current[2]]),
         sides_query=(sides_q[0], sides_q[1], sides_q[2]),
         sides_candidate=(sides_c[0], sides_c[1], sides_c[2]),
         allowed=(allowed[0], allowed[1], allowed[2]),
         agree=agree,
+        scale=scale,
+        log_scale_sigma=log_sigma,
     )
+
+
+def _common_scale(triangles: list[Triangle], k_sigma: float) -> list[Triangle]:
+    """``"similar"``: keep ``agree`` only for triangles whose scale is the shared one (median of
+    the scales of the triangles whose shapes agree), within ``k_sigma`` of their noise."""
+    logs = [math.log(t.scale) for t in triangles if t.agree and t.scale > 0]
+    if not logs:
+        return triangles
+    centre = float(np.median(logs))
+    out = []
+    for t in triangles:
+        shared = t.agree and abs(math.log(t.scale) - centre) <= k_sigma * t.log_scale_sigma
+        out.append(dataclasses.replace(t, agree=shared))
+    return out
 
 
 def check_triangles(
@@ -292,6 +328,8 @@ def check_triangles(
             continue
         triangles.append(_compare(current, pos, q, c, config))
         current = []
+    if config.tolerance == "similar":
+        triangles = _common_scale(triangles, config.k_sigma)
     return TriangleCheck(
         triangles=tuple(triangles),
         n_agree=sum(t.agree for t in triangles),

@@ -17,6 +17,7 @@ class Method(StrEnum):
     """Which verifier decided."""
 
     TRIANGLES = "triangles"
+    SIMILAR_TRIANGLES = "similar_triangles"  # monocular points: shapes compared, scale-free
     FUNDAMENTAL = "fundamental"
     PNP = "pnp"
 

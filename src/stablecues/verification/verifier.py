@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -13,7 +14,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from ..geometry.camera import Calibration, PinholeCamera
-from ..geometry.points import NoiseModel, Points3D
+from ..geometry.points import NoiseModel, Points3D, relative_points_from_meta
 from ..geometry.pose import PoseEstimate, estimate_pose_pnp, fundamental_ransac
 from ..geometry.triangles import TriangleCheck, check_triangles
 from ..types import Entry, Features, FeatureVector
@@ -79,6 +80,7 @@ class Verifier:
         self.camera = camera
         self.noise = noise
         self._triangle_config = config.triangle_config()
+        self._similar_config = dataclasses.replace(self._triangle_config, tolerance="similar")
         self._pnp_config = config.pnp_config()
 
     @classmethod
@@ -111,8 +113,16 @@ class Verifier:
         return self.noise.points(xyz, features.octaves)
 
     def view_of_entry(self, entry: Entry) -> View:
-        """The View of a database entry (its features, direct index and stored 3D points)."""
-        return View(entry.features, entry.fvec, self.points_from_xyz(entry.points3d, entry.features))
+        """The View of a database entry (its features, direct index and stored 3D points; the
+        sigmas of monocular points are read from the entry's record)."""
+        points = None
+        if entry.points3d is not None and self.camera is not None:
+            model = NoiseModel(0.0, self.camera.fx) if self.noise is None else self.noise
+            octaves = entry.features.octaves
+            points = relative_points_from_meta(entry.points3d, dict(entry.meta), model, octaves)
+        if points is None:
+            points = self.points_from_xyz(entry.points3d, entry.features)
+        return View(entry.features, entry.fvec, points)
 
     def verify_entry(self, query: View, entry: Entry) -> Verification:
         """Verify the query frame against a database entry."""
@@ -151,6 +161,8 @@ class Verifier:
             return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")
         if fallback:
             logger.debug("no 3D points for %s: falling back to %s", cfg.method, method.value)
+        if method is Method.TRIANGLES and not _metric(query.points, candidate.points):
+            method = Method.SIMILAR_TRIANGLES  # a monocular side: its scale is unknown
         ctx = _Context(query, candidate, matches, method, fallback, t0, timings)
         return self._checks[method](ctx)
 
@@ -159,6 +171,7 @@ class Verifier:
         """The verifier of each method."""
         return {
             Method.TRIANGLES: self._triangles,
+            Method.SIMILAR_TRIANGLES: self._triangles,
             Method.PNP: self._pnp_only,
             Method.FUNDAMENTAL: self._fundamental,
         }
@@ -167,9 +180,9 @@ class Verifier:
         """The method that can run on these views: the configured one, or its fallback (PnP when
         only the candidate has 3D points, the fundamental matrix when it has none)."""
         if configured is Method.TRIANGLES and (query.points is None or candidate.points is None):
-            return (
-                Method.PNP if candidate.points is not None and self.camera is not None else Method.FUNDAMENTAL
-            )
+            # PnP stands in only with metric candidate points: monocular ones are too sparse
+            pnp = candidate.points is not None and candidate.points.metric and self.camera is not None
+            return Method.PNP if pnp else Method.FUNDAMENTAL
         if configured is Method.PNP and (candidate.points is None or self.camera is None):
             return Method.FUNDAMENTAL
         return configured
@@ -230,7 +243,8 @@ class Verifier:
         pix = query.features.keypoints[matches.query].astype(np.float64)
         sq = pixel_sigma * np.power(scale, query.features.octaves[matches.query].astype(np.float64))
         qpts = cpix = sc = None
-        if query.points is not None:
+        # the symmetric refinement needs both frames in one (metric) unit
+        if query.points is not None and _metric(query.points, candidate.points):
             qpts = query.points.xyz[matches.query].astype(np.float64)
             qpts[~query.points.valid[matches.query]] = np.nan
             cpix = candidate.features.keypoints[matches.candidate].astype(np.float64)
@@ -286,15 +300,24 @@ class Verifier:
                 Status.TOO_FEW_MATCHES, f"{len(matches)} matches, need {3 * need} for {need} triangles"
             )
         t = time.perf_counter()
+        similar = ctx.method is Method.SIMILAR_TRIANGLES
+        triangle_config = self._similar_config if similar else self._triangle_config
         tc: TriangleCheck = check_triangles(
             query.points.subset(matches.query),
             candidate.points.subset(matches.candidate),
-            self._triangle_config,
+            triangle_config,
         )
         ctx.timings["triangles"] = (time.perf_counter() - t) * 1e3
         extra: dict[str, Any] = {"triangles": tc.triangles, "n_triangles_agree": tc.n_agree}
-        summary = f"{tc.n_agree} of {cfg.n_triangles} triangles agree ({tc.n_checked} formed), need {need}"
+        kind = "similar triangles" if similar else "triangles"
+        summary = f"{tc.n_agree} of {cfg.n_triangles} {kind} agree ({tc.n_checked} formed), need {need}"
         vertices = _vertex_mask(tc, len(matches))
+        if similar and tc.n_checked < need and cfg.fallback:
+            # a monocular frame triangulates only what it shares with its neighbour, and points
+            # of little parallax are too uncertain to form sides: when too few triangles can be
+            # formed from the loop's matches, the epipolar check decides
+            ctx.method, ctx.fallback = Method.FUNDAMENTAL, True
+            return self._fundamental(ctx)
         if tc.n_agree < need:
             status, note = self._triangle_rejection(tc)
             return ctx.finish(status, summary + note, inliers=vertices, **extra)
@@ -314,6 +337,11 @@ class Verifier:
         if tc.n_checked < need or (cfg.acceptance == "all" and tc.n_checked < cfg.n_triangles):
             return Status.TOO_FEW_TRIANGLES, ""
         return Status.TRIANGLES_DISAGREE, ""
+
+
+def _metric(*points: Points3D | None) -> bool:
+    """Whether every side has metric 3D points (stereo, depth, map points)."""
+    return all(p is not None and p.metric for p in points)
 
 
 def _vertex_mask(tc: TriangleCheck, m: int) -> np.ndarray:
