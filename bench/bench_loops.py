@@ -19,6 +19,11 @@ ablations) on:
   consistency possible: one loop frame); exclusion of 3 frames.
 * ``euroc/loop_pairs``: two real stereo loop pairs (0-1, 2-3) and their cross pairs; frames
   stored 0, 2 then queried 1, 3: are 1->0 and 3->2 accepted, is anything else?
+* ``camvid_revisit_dev`` (issue 11's development sets, CamVid ``train`` / ``val`` drives never
+  ``test``): two traversals, the second under a changed appearance, distractor runs between;
+  ground truth by verified visual overlap (``gt.png``), exact-cell protocol. Beside every preset:
+  a DBoW2-style top-1 retrieval with its raw score swept (no normalisation, no islands, no
+  temporal window, no geometry), and the loss funnel of each run (where the true loops were lost).
 
 Prints tables and writes ``bench/results/loops.json``. Runs in a few minutes on 2 cores.
 """
@@ -27,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -41,13 +47,32 @@ from stablecues.detection import LoopDetector, describe_preset, preset
 from stablecues.detection.run import run_dataset
 from stablecues.errors import ModelError
 from stablecues.evaluation import evaluate_detections, evaluate_run, load_run
+from stablecues.evaluation.funnel import loss_funnel
+from stablecues.groundtruth import load_ground_truth
 from stablecues.imageio import read_image
 from stablecues.types import Frame
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "data"
 MAIN_PRESETS = ["default", "paper", "bow", "bow-nogeom"]
-ABLATIONS = ["mask-only", "triangles-only", "paper-triangles-noise", "dilate", "patch", "dynamic"]
+ABLATIONS = ["mask-only", "triangles-only", "paper-triangles-noise", "dilate", "patch", "dynamic",
+             "weighted", "mono-triangles"]
+#: issue 11's switches, each turned off from the default (or on, for the ones it leaves off)
+SWITCHES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "- several islands (verify 1, as DLoopDetector)": {"query": {"islands_verified": 1}},
+    "- refined entry (the island's best, as DLoopDetector)": {"query": {"refine": 0}},
+    "- fundamental thresholds (12 inliers, no ratio, RANSAC)": {
+        "verification": {"min_fundamental_inliers": 12, "min_fundamental_ratio": 0.0,
+                         "fundamental_method": "ransac"}},
+    "+ temporal window k = 2": {"query": {"temporal_k": 2}},
+    "+ temporal window k = 3 (DLoopDetector)": {"query": {"temporal_k": 3}},
+    "+ monocular triangles": {"monocular": {}},
+    "+ semantic weighting (network, T = 1)": {"weighting": {}, "segmentation_samples": 1},
+    "+ hard static mask (network)": {"masking": {"mode": "hard"}},
+}
+TOP1 = {"query": {"use_nss": False, "alpha": 0.0, "temporal_k": 1, "island_gap": 0, "islands_verified": 1},
+        "confidence": "bow", "similarity": False}
 PROTOCOLS = (("exact", 0), ("tolerance", 2), ("ibow", 2))
 
 
@@ -291,6 +316,88 @@ def bench_euroc(names: list[str]) -> dict[str, Any]:
     return out
 
 
+# ---------------------------------------------------------------------------------- revisits
+REVISITS = ("train_drives", "val_drive")
+
+
+def _run_eval(ds: Any, gt: Any, cfg: Any, work: Path, name: str, score: str = "score") -> dict[str, Any]:
+    run_dir = work / name.replace(" ", "_").replace("/", "_")
+    summary = run_dataset(ds, cfg, run_dir, preset_name=name, progress=False, pictures=0)
+    run = load_run(run_dir)
+    ev, _ = evaluate_run(run, gt, protocol="exact", tolerance=0, exclude=0, score=score)  # type: ignore[arg-type]
+    funnel = loss_funnel(run, gt.matrix, ev, query_mask=gt.query_mask)
+    return {
+        "r_at_100p": round(ev.recall_at_100p, 4), "tp": ev.tp, "fp": ev.fp, "positives": ev.positives,
+        "tp_at_100p": ev.tp_at_100p, "ms_per_frame": round(summary.ms_per_frame, 2),
+        "funnel": funnel.counts,
+    }
+
+
+def bench_revisits(network: bool) -> dict[str, Any]:
+    """The default, the presets, issue 11's switches and the DBoW2 top-1 baseline per set."""
+    out: dict[str, Any] = {}
+    dev = SHARED / "camvid_revisit_dev"
+    sets = {name: (dev / name / "frames", dev / name / "gt.png") for name in REVISITS}
+    corridor = open_dataset(SHARED / "corridor", format="vprbench")
+    with tempfile.TemporaryDirectory() as tmp:
+        for set_name in [*REVISITS, "corridor"]:
+            if set_name == "corridor":
+                ds, gt = corridor, corridor.ground_truth()
+            else:
+                ds = open_dataset(sets[set_name][0], format="folder")
+                gt = load_ground_truth(sets[set_name][1])
+            res: dict[str, Any] = {"frames": len(ds), "gt_file": str(gt.path)}
+            res["dbow2 top-1, raw score swept"] = _run_eval(ds, gt, preset("bow-nogeom", TOP1), Path(tmp),
+                                                            f"{set_name}_top1", score="raw_score")
+            for name in ["bow", "paper", "bow-nogeom"]:
+                if name == "paper" and not network:
+                    continue
+                res[name] = _run_eval(ds, gt, preset(name), Path(tmp), f"{set_name}_{name}")
+            for label, over in SWITCHES.items():
+                if not network and ("weighting" in over or "masking" in over):
+                    continue
+                res[label] = _run_eval(ds, gt, preset("default", over), Path(tmp), f"{set_name}_{label}")
+            out[set_name] = res
+            for label, r in res.items():
+                if isinstance(r, dict):
+                    print(f"  {set_name:12s} {label:58s} R@100P {r['r_at_100p']:.3f} (TP {r['tp']} "
+                          f"FP {r['fp']} of {r['positives']}) {r['ms_per_frame']} ms/frame", flush=True)
+    return out
+
+
+def bench_speed() -> dict[str, Any]:
+    """Milliseconds per 480x360 frame on ONE thread (OpenCV and onnxruntime), the CamVid revisit
+    frames of ``train_drives``: the default, with monocular triangulation, with the network (T = 1)."""
+    from stablecues.semantics.inference import SegmentationModel
+
+    cv2.setNumThreads(1)
+    ds = open_dataset(SHARED / "camvid_revisit_dev" / "train_drives" / "frames", format="folder")
+    frames = [ds[i] for i in range(len(ds))]
+    out: dict[str, Any] = {"frames": len(frames), "threads": 1, "load_before": list(os.getloadavg())}
+    model = SegmentationModel.load(threads=1) if network_available() else None
+    variants: dict[str, tuple[str, dict[str, Any]]] = {
+        "default": ("default", {}),
+        "default + monocular triangulation": ("mono-triangles", {}),
+        "default + semantic weighting (network T = 1)": ("weighted", {}),
+        "bow (DBoW2 + fundamental)": ("bow", {}),
+    }
+    for label, (name, over) in variants.items():
+        cfg = preset(name, {"similarity": False, **over})
+        if cfg.weighting is not None and model is None:
+            continue
+        seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
+        det = LoopDetector(cfg, segmenter=seg)
+        totals = [det.process(f).timings["total"] for f in frames]
+        out[label] = {"mean_ms": round(float(np.mean(totals)), 2),
+                      "median_ms": round(float(np.median(totals)), 2),
+                      "p90_ms": round(float(np.percentile(totals, 90)), 2)}
+        print(f"  {label:48s} mean {out[label]['mean_ms']:.1f} ms, median {out[label]['median_ms']:.1f} ms, "
+              f"p90 {out[label]['p90_ms']:.1f} ms per frame", flush=True)
+        det.close()
+    out["load_after"] = list(os.getloadavg())
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "loops.json")
@@ -306,6 +413,10 @@ def main() -> None:
         "network_weights": network,
         "note": "masking presets without network weights run on camvid with its ground-truth labels only",
     }
+    print("speed, one thread, 480x360:", flush=True)
+    results["speed"] = bench_speed()
+    print("camvid revisits (development sets) and corridor, exact cell:", flush=True)
+    results["revisits"] = bench_revisits(network)
     with tempfile.TemporaryDirectory() as tmp:
         print("corridor (two-pass, indoor):", flush=True)
         results["corridor"] = bench_corridor(runnable, Path(tmp))

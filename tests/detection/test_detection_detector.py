@@ -224,7 +224,8 @@ def test_a_true_loop_in_the_second_island_is_found() -> None:
     ds = open_dataset(shared_path("camvid_revisit_dev", "train_drives", "frames"), format="folder")
     decisions = {}
     for k in (1, 5):
-        det = LoopDetector(preset("default", {"query": {"islands_verified": k}, "similarity": False}))
+        over = {"query": {"islands_verified": k, "refine": 0}, "similarity": False}
+        det = LoopDetector(preset("default", over))
         for i in range(144):
             det.store(ds[i])
         decisions[k] = det.process(ds[144])

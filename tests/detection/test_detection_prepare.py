@@ -121,3 +121,4 @@ def test_detector_and_pair_verifier_prepare_alike() -> None:
     np.testing.assert_array_equal(detector_side.points.xyz, pair_side.points.xyz)
     assert pair.verifier.camera is calib.left  # keypoints and points refer to the raw left camera
     assert OrbConfig(n_features=2000) == config.features
+

@@ -9,6 +9,7 @@ from ..config import merge, select_by
 from ..errors import ConfigError
 from ..features import ExtractorConfig, OrbConfig, extractor_config_class
 from ..semantics.masking import MASKING_PRESETS, MaskingConfig
+from ..semantics.weighting import WeightingConfig
 from ..verification.config import VerificationConfig
 from ..verification.config import preset as verification_preset
 
@@ -33,6 +34,9 @@ class QueryConfig:
         islands_verified: how many islands, best first, are verified (DLoopDetector: 1, the
             best island's best entry); of those accepted, the one with the most geometric
             inliers is the loop.
+        refine: the entries up to this many ids either side of the accepted island's best entry
+            (inside the island) are verified too, and the one with the most inliers is the loop
+            (0: the island's best entry, as DLoopDetector).
     """
 
     exclude_recent: int = 20
@@ -46,6 +50,7 @@ class QueryConfig:
     temporal_gap: int = 3
     max_query_gap: int = 2
     islands_verified: int = 1
+    refine: int = 0
 
     def __post_init__(self) -> None:
         if self.exclude_recent < 0 or self.max_results < 1 or self.temporal_k < 1:
@@ -96,6 +101,8 @@ class DetectorConfig:
         query: database query, islands and temporal consistency.
         similarity: keep each frame's scores against all earlier entries (for the report's
             similarity matrix).
+        weighting: semantic weighting of features in the BoW vector by the stability of their
+            class and the network's certainty (:mod:`stablecues.semantics.weighting`), or None.
         monocular: triangulate frames that have no other 3D against a neighbouring frame of
             the stream (the triangle check then compares shapes), or None for no such 3D.
         confidence: what ranks accepted loops (the score precision-recall curves sweep):
@@ -113,6 +120,7 @@ class DetectorConfig:
     verification: VerificationConfig | None = field(default_factory=VerificationConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     similarity: bool = True
+    weighting: WeightingConfig | None = None
     monocular: MonocularConfig | None = None
     confidence: Literal["inliers", "bow"] = "inliers"
 
@@ -133,12 +141,21 @@ def _mask(name: str | None) -> MaskingConfig | None:
     return None if name is None else MASKING_PRESETS[name]
 
 
+#: the query settings that measured best on the development sets (README, bench/bench_loops.py):
+#: the 5 best islands verified, the best-fitting neighbour of the accepted entry, no temporal window
+_MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal_k": 1}
+
 #: preset name -> (masking preset, verification preset, other overrides, one line of description)
 _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
-    "default": (None, "default", {"query": {"islands_verified": 5, "temporal_k": 1}},
+    "default": (None, "default", {"query": _MEASURED_QUERY},
                 "the measured best: no mask, the 5 best islands verified (triangles with 3D, else "
-                "the fundamental matrix with inlier count and ratio), no temporal window"),
-    "mono-triangles": (None, "default", {"query": {"islands_verified": 5, "temporal_k": 1}, "monocular": {}},
+                "the fundamental matrix with inlier count and ratio), the best-fitting neighbour of "
+                "the accepted entry, no temporal window"),
+    "weighted": (None, "default",
+                 {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1},
+                 "the default + semantic weighting: each feature weighted by its class's measured "
+                 "stability and the network's certainty (T = 1)"),
+    "mono-triangles": (None, "default", {"query": _MEASURED_QUERY, "monocular": {}},
                        "the default + monocular 3D: frames without other 3D triangulated against a "
                        "neighbour, loops checked by similar triangles where they can be formed"),
     "paper": ("paper", "paper", {},

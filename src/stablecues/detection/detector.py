@@ -32,6 +32,7 @@ from ..geometry.camera import Calibration
 from ..geometry.points import relative_points_meta
 from ..types import BowVector, Features, Frame
 from ..verification.result import Verification
+from ..verification.verifier import Verifier
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
@@ -253,10 +254,30 @@ class LoopDetector:
         if not accepted:
             return Status.NO_GEOMETRICAL_CONSISTENCY, checked[0].verification, tuple(checked)
         best = max(accepted, key=lambda c: (c.verification.n_inliers, c.island.best_score))
-        if best.island is not found.island:
-            found.candidate, found.island = best.island.best, best.island
-            found.score, found.raw_score = best.island.best_score, found.raw_of[best.island.best]
-        return Status.LOOP_DETECTED, best.verification, tuple(checked)
+        entry, result = best.island.best, best.verification
+        for e, r in self._refine(prep, verifier, best.island, checked):
+            if r.accepted and r.n_inliers > result.n_inliers:
+                entry, result = e, r
+        if entry != found.candidate:
+            norm = dict(found.results)
+            found.candidate, found.island = entry, best.island
+            found.score = norm.get(entry, best.island.best_score)
+            found.raw_score = found.raw_of.get(entry, 0.0)
+        return Status.LOOP_DETECTED, result, tuple(checked)
+
+    def _refine(
+        self, prep: PreparedFrame, verifier: Verifier, island: Island, checked: list[Checked]
+    ) -> list[tuple[int, Verification]]:
+        """The entries of the accepted island next to its best one (``query.refine`` either side),
+        verified too: the neighbour that fits the geometry best is the loop's entry."""
+        r = self.config.query.refine
+        out = []
+        for e in range(max(island.first, island.best - r), min(island.last, island.best + r) + 1):
+            if e != island.best:
+                result = verifier.verify_entry(prep.view, self.db.entry(e))
+                checked.append(Checked(island, self._entry_frames[e], result))
+                out.append((e, result))
+        return out
 
     def _store(self, frame: Frame, prep: PreparedFrame) -> None:
         t = time.perf_counter()

@@ -40,6 +40,7 @@ from ..imageio import to_grey
 from ..semantics.classes import NUM_CLASSES
 from ..semantics.inference import SegmentationModel, SegmentationResult
 from ..semantics.masking import select_features
+from ..semantics.weighting import feature_weights
 from ..types import BowVector, Features, FeatureVector, Frame
 from ..verification.matching import match_features
 from ..verification.verifier import Verifier, View
@@ -216,8 +217,17 @@ class FramePreparer:
             features = self.extractor.extract(to_grey(frame.image, f"frame {frame.index} image"))
         laps("extract")
         n_features = len(features)
-        features, keep, fallback = self._select(frame, features, laps)
-        bow, fvec = self.vocabulary.transform(features.descriptors)
+        seg: SegmentationResult | None = None
+        features, keep, fallback, seg = self._select(frame, features, laps)
+        weights = None
+        if self.config.weighting is not None and len(features):
+            seg = seg if seg is not None else self.segment(frame)
+            weights = feature_weights(features, seg, self.config.weighting)
+            laps("segment")
+        if weights is None:
+            bow, fvec = self.vocabulary.transform(features.descriptors)
+        else:
+            bow, fvec = self.vocabulary.transform(features.descriptors, weights=weights)
         laps("transform")
         points, source = None, None
         if self.config.verification is not None:
@@ -233,17 +243,18 @@ class FramePreparer:
 
     def _select(
         self, frame: Frame, features: Features, laps: _Laps
-    ) -> tuple[Features, np.ndarray | None, bool]:
-        """Semantic selection: (kept features, indices kept or None for all, fell back)."""
+    ) -> tuple[Features, np.ndarray | None, bool, SegmentationResult | None]:
+        """Semantic selection: (kept features, indices kept or None for all, fell back, the
+        segmentation when it was computed)."""
         masking = self.config.masking
         if masking is None or masking.mode == "none" or not len(features):
-            return features, None, False
+            return features, None, False, None
         seg = self.segment(frame)
         laps("segment")
         kept, report = select_features(features, seg, masking)
         laps("mask")
         fallback = bool(report.fallback)
-        return kept, (None if fallback else np.flatnonzero(report.passed)), fallback
+        return kept, (None if fallback else np.flatnonzero(report.passed)), fallback, seg
 
     def segment(self, frame: Frame) -> SegmentationResult:
         """The frame's segmentation: its label image (``semantic_source="labels"``) or the network."""

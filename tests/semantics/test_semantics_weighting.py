@@ -1,0 +1,69 @@
+"""Semantic weighting: stable classes count more, dynamic ones less, unsure pixels not at all."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stablecues.errors import ConfigError
+from stablecues.semantics.classes import CLASS_NAMES, NUM_CLASSES
+from stablecues.semantics.inference import SegmentationResult
+from stablecues.semantics.weighting import WeightingConfig, feature_weights, shipped_stability
+from stablecues.types import Features
+
+BUILDING, CAR = CLASS_NAMES.index("Building"), CLASS_NAMES.index("Car")
+
+
+def _features(xy: list[tuple[float, float]]) -> Features:
+    n = len(xy)
+    return Features(np.array(xy, np.float32), np.zeros((n, 32), np.uint8), np.zeros(n, np.int16),
+                    np.zeros(n, np.float32), np.ones(n, np.float32), np.full(n, 31.0, np.float32), (80, 40))
+
+
+def _seg(prob: np.ndarray) -> SegmentationResult:
+    """A segmentation of an 80x40 frame from a (C, 10, 20) posterior."""
+    labels = np.zeros((40, 80), np.uint8)
+    return SegmentationResult(labels, np.ones((40, 80), np.float32), np.zeros((40, 80), np.float32), 1,
+                              prob.astype(np.float32))
+
+
+def test_sure_classes_take_their_stability_and_flat_posteriors_fade_out() -> None:
+    prob = np.full((NUM_CLASSES, 10, 20), 1.0 / NUM_CLASSES)  # unsure everywhere ...
+    prob[:, :, :5] = 0.0
+    prob[BUILDING, :, :5] = 1.0  # ... but sure of a building on the left
+    prob[:, :, 15:] = 0.0
+    prob[CAR, :, 15:] = 1.0  # and of a car on the right
+    cfg = WeightingConfig(stability={"Building": 1.5, "Car": 0.2})
+    w = feature_weights(_features([(2.0, 20.0), (40.0, 20.0), (78.0, 20.0)]), _seg(prob), cfg)
+    np.testing.assert_allclose(w, [1.5, 1.0, 0.2])
+    assert feature_weights(_features([(78.0, 20.0)]), _seg(prob), WeightingConfig(
+        stability={"Car": 0.0}, min_weight=0.05))[0] == pytest.approx(0.05)  # suppressed, not removed
+    assert feature_weights(_features([(2.0, 20.0)]), _seg(prob), WeightingConfig(
+        stability={"Building": 1.5}, strength=0.0))[0] == pytest.approx(1.0)
+
+
+def test_oracle_labels_are_certain() -> None:
+    labels = np.full((40, 80), BUILDING, np.uint8)
+    labels[:, 40:] = CAR
+    seg = SegmentationResult(labels, np.ones((40, 80), np.float32), np.zeros((40, 80), np.float32), 0,
+                             np.zeros((NUM_CLASSES, 1, 1), np.float32))
+    w = feature_weights(_features([(10.0, 10.0), (70.0, 10.0)]), seg, WeightingConfig())
+    table = shipped_stability()
+    np.testing.assert_allclose(w, [table["Building"], table["Car"]])
+
+
+def test_shipped_stabilities_follow_the_measurement() -> None:
+    """Measured on real CamVid revisits (scripts/estimate_class_stability.py): buildings come back
+    more often than the average feature, cars, people and road texture much less."""
+    s = shipped_stability()
+    assert set(CLASS_NAMES) <= set(s)
+    assert s["Building"] > 1.0 > s["Car"] and s["Pedestrian"] < 0.5 and s["Road"] < 0.5
+
+
+def test_settings_are_checked() -> None:
+    with pytest.raises(ConfigError, match="unknown class"):
+        WeightingConfig(stability={"Cow": 2.0})
+    with pytest.raises(ConfigError):
+        WeightingConfig(min_weight=0.0)
+    empty = Features.empty((80, 40))
+    assert len(feature_weights(empty, _seg(np.ones((NUM_CLASSES, 10, 20))), WeightingConfig())) == 0
