@@ -54,7 +54,7 @@ from stablecues.types import Frame
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "data"
-MAIN_PRESETS = ["default", "paper", "bow", "bow-nogeom"]
+MAIN_PRESETS = ["default", "fast", "paper", "bow", "bow-nogeom"]
 ABLATIONS = ["mask-only", "triangles-only", "paper-triangles-noise", "dilate", "patch", "dynamic",
              "weighted", "mono-triangles"]
 #: issue 11's switches, each turned off from the default (or on, for the ones it leaves off)
@@ -68,8 +68,10 @@ SWITCHES: dict[str, dict[str, Any]] = {
     "+ temporal window k = 2": {"query": {"temporal_k": 2}},
     "+ temporal window k = 3 (DLoopDetector)": {"query": {"temporal_k": 3}},
     "+ monocular triangles": {"monocular": {}},
-    "+ semantic weighting (network, T = 1)": {"weighting": {}, "segmentation_samples": 1},
-    "+ hard static mask (network)": {"masking": {"mode": "hard"}},
+    "- semantic weighting (dynamic mask only)": {"weighting": None},
+    "- dynamic mask (weighting only)": {"masking": None},
+    "- semantics (preset fast: no network)": {"weighting": None, "masking": None},
+    "hard static mask instead (the paper's)": {"weighting": None, "masking": {"mode": "hard"}},
 }
 TOP1 = {"query": {"use_nss": False, "alpha": 0.0, "temporal_k": 1, "island_gap": 0, "islands_verified": 1},
         "confidence": "bow", "similarity": False}
@@ -77,7 +79,9 @@ PROTOCOLS = (("exact", 0), ("tolerance", 2), ("ibow", 2))
 
 
 def uses_masking(name: str) -> bool:
-    return preset(name).masking is not None
+    """Whether the preset needs segmentation (a mask or semantic weighting)."""
+    cfg = preset(name)
+    return cfg.masking is not None or cfg.weighting is not None
 
 
 def network_available() -> bool:
@@ -318,6 +322,36 @@ def bench_euroc(names: list[str]) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------------- revisits
 REVISITS = ("train_drives", "val_drive")
+DYNAMIC_IDS = (8, 9, 10)  # CamVid Car, Pedestrian, Bicyclist
+
+
+def make_swapped(src: Path, dst: Path, seed: int = 0) -> Path:
+    """A copy of a revisit set whose second traversal has other cars and people: every dynamic
+    object (CamVid's own labels) is inpainted away and the dynamic objects of another frame of the
+    set (at least a third of the set away) are pasted in at their own pixels. Written to ``dst``
+    (a temporary folder: derived data never enters the repository)."""
+    gt = cv2.imread(str(src / "gt.png"), cv2.IMREAD_GRAYSCALE) > 0
+    rows = set(np.flatnonzero(gt.any(axis=1)).tolist())
+    frames = sorted((src / "frames").glob("*.jpg"))
+    labels = sorted((src / "labels").glob("*.png"))
+    rng = np.random.default_rng(seed)
+    (dst / "frames").mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(frames):
+        img = cv2.imread(str(f))
+        if i in rows:
+            lab = cv2.imread(str(labels[i]), cv2.IMREAD_GRAYSCALE)
+            dyn = np.isin(lab, DYNAMIC_IDS).astype(np.uint8)
+            if dyn.any():
+                img = cv2.inpaint(img, cv2.dilate(dyn, np.ones((5, 5), np.uint8)) * 255, 5, cv2.INPAINT_TELEA)
+            gap = min(30, len(frames) // 3)
+            j = int(rng.choice([k for k in range(len(frames)) if abs(k - i) > gap]))
+            other, olab = cv2.imread(str(frames[j])), cv2.imread(str(labels[j]), cv2.IMREAD_GRAYSCALE)
+            if other.shape == img.shape:
+                paste = np.isin(olab, DYNAMIC_IDS)
+                img[paste] = other[paste]
+        cv2.imwrite(str(dst / "frames" / f.name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    (dst / "gt.png").write_bytes((src / "gt.png").read_bytes())
+    return dst
 
 
 def _run_eval(ds: Any, gt: Any, cfg: Any, work: Path, name: str, score: str = "score") -> dict[str, Any]:
@@ -337,30 +371,36 @@ def bench_revisits(network: bool) -> dict[str, Any]:
     """The default, the presets, issue 11's switches and the DBoW2 top-1 baseline per set."""
     out: dict[str, Any] = {}
     dev = SHARED / "camvid_revisit_dev"
-    sets = {name: (dev / name / "frames", dev / name / "gt.png") for name in REVISITS}
     corridor = open_dataset(SHARED / "corridor", format="vprbench")
     with tempfile.TemporaryDirectory() as tmp:
-        for set_name in [*REVISITS, "corridor"]:
+        sets = {name: (dev / name / "frames", dev / name / "gt.png") for name in REVISITS}
+        for name in REVISITS:
+            swapped = make_swapped(dev / name, Path(tmp) / f"swapped_{name}")
+            sets[f"{name} (objects swapped)"] = (swapped / "frames", swapped / "gt.png")
+        for set_name in [*sets, "corridor"]:
             if set_name == "corridor":
                 ds, gt = corridor, corridor.ground_truth()
             else:
                 ds = open_dataset(sets[set_name][0], format="folder")
                 gt = load_ground_truth(sets[set_name][1])
-            res: dict[str, Any] = {"frames": len(ds), "gt_file": str(gt.path)}
+            res: dict[str, Any] = {"frames": len(ds), "gt_file": str(gt.path) if "swapped" not in set_name
+                                   else f"{gt.path.name} of {set_name.split()[0]}"}
+            tag = set_name.split()[0] + ("_swapped" if "swapped" in set_name else "")
             res["dbow2 top-1, raw score swept"] = _run_eval(ds, gt, preset("bow-nogeom", TOP1), Path(tmp),
-                                                            f"{set_name}_top1", score="raw_score")
+                                                            f"{tag}_top1", score="raw_score")
             for name in ["bow", "paper", "bow-nogeom"]:
                 if name == "paper" and not network:
                     continue
-                res[name] = _run_eval(ds, gt, preset(name), Path(tmp), f"{set_name}_{name}")
+                res[name] = _run_eval(ds, gt, preset(name), Path(tmp), f"{tag}_{name}")
             for label, over in SWITCHES.items():
-                if not network and ("weighting" in over or "masking" in over):
+                cfg = preset("default", over)
+                if not network and (cfg.weighting is not None or cfg.masking is not None):
                     continue
-                res[label] = _run_eval(ds, gt, preset("default", over), Path(tmp), f"{set_name}_{label}")
+                res[label] = _run_eval(ds, gt, cfg, Path(tmp), f"{tag}_{label}")
             out[set_name] = res
             for label, r in res.items():
                 if isinstance(r, dict):
-                    print(f"  {set_name:12s} {label:58s} R@100P {r['r_at_100p']:.3f} (TP {r['tp']} "
+                    print(f"  {set_name[:24]:24s} {label:58s} R@100P {r['r_at_100p']:.3f} (TP {r['tp']} "
                           f"FP {r['fp']} of {r['positives']}) {r['ms_per_frame']} ms/frame", flush=True)
     return out
 
@@ -376,14 +416,14 @@ def bench_speed() -> dict[str, Any]:
     out: dict[str, Any] = {"frames": len(frames), "threads": 1, "load_before": list(os.getloadavg())}
     model = SegmentationModel.load(threads=1) if network_available() else None
     variants: dict[str, tuple[str, dict[str, Any]]] = {
-        "default": ("default", {}),
-        "default + monocular triangulation": ("mono-triangles", {}),
-        "default + semantic weighting (network T = 1)": ("weighted", {}),
+        "default (network T = 1)": ("default", {}),
+        "fast (the default without the network)": ("fast", {}),
+        "fast + monocular triangulation": ("fast", {"monocular": {}}),
         "bow (DBoW2 + fundamental)": ("bow", {}),
     }
     for label, (name, over) in variants.items():
         cfg = preset(name, {"similarity": False, **over})
-        if cfg.weighting is not None and model is None:
+        if (cfg.weighting is not None or cfg.masking is not None) and model is None:
             continue
         seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
         det = LoopDetector(cfg, segmenter=seg)
@@ -402,6 +442,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "loops.json")
     ap.add_argument("--quick", action="store_true", help="main presets only, no ablations")
+    ap.add_argument("--sections", default="speed,revisits,corridor,camvid,desk,euroc",
+                    help="comma-separated sections to run (default: all)")
     args = ap.parse_args()
     if not SHARED.exists():
         sys.exit(f"{SHARED} is absent: this benchmark needs the real data")
@@ -413,19 +455,26 @@ def main() -> None:
         "network_weights": network,
         "note": "masking presets without network weights run on camvid with its ground-truth labels only",
     }
-    print("speed, one thread, 480x360:", flush=True)
-    results["speed"] = bench_speed()
-    print("camvid revisits (development sets) and corridor, exact cell:", flush=True)
-    results["revisits"] = bench_revisits(network)
-    with tempfile.TemporaryDirectory() as tmp:
-        print("corridor (two-pass, indoor):", flush=True)
-        results["corridor"] = bench_corridor(runnable, Path(tmp))
-    print("camvid/test retrieval:", flush=True)
-    results["camvid"] = bench_camvid(names, network)
-    print("desk_loop10:", flush=True)
-    results["desk_loop10"] = bench_desk(runnable)
-    print("euroc/loop_pairs:", flush=True)
-    results["euroc_pairs"] = bench_euroc(runnable)
+    sections = set(args.sections.split(","))
+    if "speed" in sections:
+        print("speed, one thread, 480x360:", flush=True)
+        results["speed"] = bench_speed()
+    if "revisits" in sections:
+        print("camvid revisits (development sets) and corridor, exact cell:", flush=True)
+        results["revisits"] = bench_revisits(network)
+    if "corridor" in sections:
+        with tempfile.TemporaryDirectory() as tmp:
+            print("corridor (two-pass, indoor):", flush=True)
+            results["corridor"] = bench_corridor(runnable, Path(tmp))
+    if "camvid" in sections:
+        print("camvid/test retrieval:", flush=True)
+        results["camvid"] = bench_camvid(names, network)
+    if "desk" in sections:
+        print("desk_loop10:", flush=True)
+        results["desk_loop10"] = bench_desk(runnable)
+    if "euroc" in sections:
+        print("euroc/loop_pairs:", flush=True)
+        results["euroc_pairs"] = bench_euroc(runnable)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
     print(f"written {args.out}")

@@ -76,7 +76,10 @@ def main() -> None:
         pairs += 1
     rate = refound.sum() / seen.sum()
     names = [*CLASS_NAMES, "Unlabelled"][:n_classes]
-    stability = {n: (round(float(r / s / rate), 3) if s >= 200 else 1.0) for n, r, s in zip(names, refound, seen, strict=True)}
+    stability = {
+        n: (round(float(r / s / rate), 3) if s >= 200 else 1.0)
+        for n, r, s in zip(names, refound, seen, strict=True)
+    }
     doc = {
         "stability": stability,
         "features_seen": {n: int(s) for n, s in zip(names, seen, strict=True)},
@@ -89,7 +92,8 @@ def main() -> None:
     }
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     for n in names:
-        print(f"{n:12s} stability {stability[n]:5.2f}  ({int(refound[names.index(n)])} of {int(seen[names.index(n)])})")
+        k = names.index(n)
+        print(f"{n:12s} stability {stability[n]:5.2f}  ({int(refound[k])} of {int(seen[k])})")
     print(f"{pairs} pairs; written {args.out}")
 
 

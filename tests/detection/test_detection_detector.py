@@ -225,7 +225,7 @@ def test_a_true_loop_in_the_second_island_is_found() -> None:
     decisions = {}
     for k in (1, 5):
         over = {"query": {"islands_verified": k, "refine": 0}, "similarity": False}
-        det = LoopDetector(preset("default", over))
+        det = LoopDetector(preset("fast", over))  # the islands, without the network
         for i in range(144):
             det.store(ds[i])
         decisions[k] = det.process(ds[144])
@@ -249,7 +249,8 @@ def test_monocular_stream_triangulates_and_resumes(tmp_path: Path) -> None:
     town = SyntheticTown(SyntheticTownConfig(frames=36, width=256, height=192, loops=1, seed=1, noise=1.0))
     stream = [Frame(index=f.index, name=str(f.index), timestamp=float(f.index), image=f.image)
               for f in (town.frame(i, right=False, depth=False, labels=False) for i in range(36))]
-    cfg = preset("mono-triangles", {"similarity": False, "query": {"exclude_recent": 5}})
+    cfg = preset("mono-triangles", {"similarity": False, "query": {"exclude_recent": 5},
+                                    "weighting": None, "masking": None})
     det = LoopDetector(cfg)
     whole = [det.process(f) for f in stream]
     sources = {d.points_source for d in whole}

@@ -78,7 +78,7 @@ def test_euroc_monocular_points_agree_in_shape_with_stereo(current: int, neighbo
     """
     root = shared_path("euroc", "loop_pairs")
     calib = load_euroc_stereo(root / "sensorLeft.yaml", root / "sensorRight.yaml")
-    prep = FramePreparer(preset("default", {"features": {"n_features": 2000}}), default_vocabulary(), calib)
+    prep = FramePreparer(preset("fast", {"features": {"n_features": 2000}}), default_vocabulary(), calib)
 
     def frame(i: int) -> Frame:
         left, right = (read_image(root / f"{side}_img_{i}.png", "grey") for side in ("left", "right"))

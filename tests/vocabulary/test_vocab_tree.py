@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stablecues.errors import InputError
-from stablecues.vocabulary import Scoring, Vocabulary, Weighting, train_vocabulary
+from stablecues.errors import InputError, VocabularyError
+from stablecues.vocabulary import Scoring, Vocabulary, Weighting, engine, train_vocabulary
 from stablecues.vocabulary.descriptors import as_words, hamming_cross
 
 
@@ -155,3 +155,107 @@ def test_bad_inputs() -> None:
                            k=3, levels=2, progress=False)
     with pytest.raises(InputError, match="uint8"):
         voc.transform(np.zeros((3, 32), np.int32))
+
+
+# ----------------------------------------------------------------------------- per-feature weights
+ENGINES = ["numpy", pytest.param("compiled", marks=pytest.mark.skipif(
+    engine.compiled_kernels() is None, reason="numba is not available"))]
+A, B = np.zeros(32, np.uint8), np.full(32, 255, np.uint8)
+
+
+def two_words(weighting: Weighting, scoring: Scoring, name: str, idf: tuple[float, float] = (0.5, 2.0)
+              ) -> Vocabulary:
+    """Root with two words: A (all zeros, weight 0.5) and B (all ones, weight 2)."""
+    voc = Vocabulary(2, 1, np.array([-1, 0, 0]), np.stack([A, A, B]), np.array([0.0, *idf]),
+                     weighting, scoring)
+    voc.engine = name
+    return voc
+
+
+FEATURES = np.stack([A, A, B])  # two features on word A, one on word B
+
+
+@pytest.mark.parametrize("name", ENGINES)
+def test_feature_weights_tf_idf_hand_computed(name: str) -> None:
+    voc = two_words(Weighting.TF_IDF, Scoring.L1, name)
+    bow, fvec = voc.transform(FEATURES, weights=np.array([1.0, 0.5, 2.0]))
+    # A: 1.0 * 0.5 + 0.5 * 0.5 = 0.75; B: 2.0 * 2 = 4; L1-normalised
+    assert bow.words.tolist() == [0, 1]
+    np.testing.assert_array_equal(bow.weights, np.array([0.75, 4.0]) / 4.75)
+    assert fvec.nodes.tolist() == [1, 1, 2]
+    plain, _ = voc.transform(FEATURES)  # DBoW2: A 0.5 + 0.5, B 2
+    np.testing.assert_array_equal(plain.weights, np.array([1.0, 2.0]) / 3.0)
+
+
+@pytest.mark.parametrize("name", ENGINES)
+def test_feature_weights_idf_and_binary_take_the_largest(name: str) -> None:
+    idf = two_words(Weighting.IDF, Scoring.L1, name)
+    bow, _ = idf.transform(FEATURES, weights=np.array([1.0, 0.5, 2.0]))
+    np.testing.assert_array_equal(bow.weights, np.array([0.5 * 1.0, 2.0 * 2.0]) / 4.5)
+    binary = two_words(Weighting.BINARY, Scoring.DOT_PRODUCT, name, idf=(1.0, 1.0))
+    bow, _ = binary.transform(FEATURES, weights=np.array([0.25, 0.75, 3.0]))
+    assert bow.weights.tolist() == [0.75, 3.0]  # no normalisation for the dot product
+
+
+@pytest.mark.parametrize("name", ENGINES)
+def test_feature_weights_tf_dot_product(name: str) -> None:
+    tf = two_words(Weighting.TF, Scoring.DOT_PRODUCT, name, idf=(1.0, 1.0))
+    bow, _ = tf.transform(FEATURES, weights=np.array([1.0, 0.5, 2.0]))
+    assert bow.weights.tolist() == [1.5 / 2, 2.0 / 2]  # DBoW2 divides by the number of words
+
+
+@pytest.mark.parametrize("name", ENGINES)
+def test_zero_weight_drops_a_feature_as_a_stopped_word_does(name: str) -> None:
+    voc = two_words(Weighting.TF_IDF, Scoring.L1, name)
+    bow, fvec = voc.transform(FEATURES, weights=np.array([0.0, 0.5, 2.0]))
+    np.testing.assert_array_equal(bow.weights, np.array([0.25, 4.0]) / 4.25)
+    assert fvec.nodes.tolist() == [-1, 1, 2]
+    bow, fvec = voc.transform(FEATURES, weights=np.zeros(3))
+    assert len(bow) == 0 and fvec.nodes.tolist() == [-1, -1, -1]
+    stopped = two_words(Weighting.TF_IDF, Scoring.L1, name, idf=(0.0, 2.0))
+    bow, fvec = stopped.transform(FEATURES, weights=np.array([1.0, 1.0, 0.5]))
+    assert bow.words.tolist() == [1] and fvec.nodes.tolist() == [-1, -1, 2]
+
+
+@pytest.mark.parametrize("name", ENGINES)
+def test_unit_weights_give_the_unweighted_result(name: str,
+                                                 small_voc: tuple[Vocabulary, list[np.ndarray]]) -> None:
+    voc, sets = small_voc
+    for weighting in Weighting:
+        twin = Vocabulary(voc.k, voc.levels, voc.parents, voc.descriptors, voc.weights, weighting,
+                          Scoring.L2)
+        twin.engine = name
+        a, fa = twin.transform(sets[1])
+        b, fb = twin.transform(sets[1], weights=np.ones(sets[1].shape[0], np.float32))
+        np.testing.assert_array_equal(a.words, b.words)
+        np.testing.assert_array_equal(a.weights, b.weights)
+        np.testing.assert_array_equal(fa.nodes, fb.nodes)
+
+
+@pytest.mark.parametrize("bad", [np.ones(2), np.ones((3, 1)), np.array([1.0, -0.5, 1.0]),
+                                 np.array([1.0, np.nan, 1.0]), np.array([np.inf, 1.0, 1.0]),
+                                 np.array(["a", "b", "c"])])
+def test_bad_feature_weights(bad: np.ndarray) -> None:
+    voc = two_words(Weighting.TF_IDF, Scoring.L1, "numpy")
+    with pytest.raises(InputError, match="weights: expected"):
+        voc.transform(FEATURES, weights=bad)
+
+
+def test_vocabulary_arrays_are_checked() -> None:
+    parents, desc = np.array([-1, 0, 0]), np.stack([A, A, B])
+    with pytest.raises(VocabularyError, match="node 2 has weight nan"):
+        Vocabulary(2, 1, parents, desc, np.array([0.0, 1.0, np.nan]))
+    with pytest.raises(VocabularyError, match="expected levels_up >= 0"):
+        Vocabulary(2, 1, parents, desc, np.ones(3), levels_up=-5)
+    with pytest.raises(VocabularyError, match="expected 2 <= k <= 1048576"):
+        Vocabulary(10**9, 1, parents, desc, np.ones(3))
+    with pytest.raises(VocabularyError, match="more than k=2 children"):
+        Vocabulary(2, 1, np.array([-1, 0, 0, 0]), np.stack([A, A, B, B]), np.ones(4))
+    with pytest.raises(VocabularyError, match="children table disagrees"):
+        Vocabulary(2, 1, parents, desc, np.ones(3), children=np.array([[2, 1], [-1, -1], [-1, -1]]))
+
+
+def test_children_table_is_sized_by_the_tree_not_by_k() -> None:
+    voc = Vocabulary(1 << 20, 1, np.array([-1, 0, 0]), np.stack([A, A, B]), np.ones(3))
+    assert voc.children.shape == (3, 2) and voc.k == 1 << 20
+    assert voc.node_word[voc.leaves_of(np.stack([B, A]))].tolist() == [1, 0]

@@ -46,7 +46,10 @@ KeypointRule = Callable[
 
 
 def _trusted(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
-    return seg.uncertainty <= config.max_uncertainty
+    trusted = seg.uncertainty <= config.max_uncertainty
+    if config.min_confidence > 0:
+        trusted &= seg.confidence >= config.min_confidence
+    return trusted
 
 
 def _static(seg: SegmentationResult, config: MaskingConfig) -> np.ndarray:
@@ -130,6 +133,9 @@ class MaskingConfig:
             is the variance of the winning class's softmax, in [0, 0.25]; always 0 with T = 1).
             0.01 is chosen from the shipped weights' calibration on CamVid val (T = 6): pixels
             below it (92 %) are 95 % correct, those above it 64 %.
+        min_confidence: lowest mean softmax of the winning class at which a pixel's class is
+            trusted (0: any). With T = 1 the uncertainty is always 0, so this is the certainty
+            gate that still works; it keeps unsure pixels (indoors) from being dropped.
         dilation: radius in pixels of the static mask's dilation (dilate).
         patch_radius: half-side of the square patch in pixels; None = half the keypoint's size.
         patch_fraction: static fraction of the patch needed to keep a keypoint (patch).
@@ -144,6 +150,7 @@ class MaskingConfig:
     static_classes: frozenset[str] = STATIC_CLASSES
     dynamic_classes: frozenset[str] = DYNAMIC_CLASSES
     max_uncertainty: float = 0.01
+    min_confidence: float = 0.0
     dilation: int = 8
     patch_radius: int | None = None
     patch_fraction: float = 0.5

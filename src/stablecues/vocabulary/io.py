@@ -9,37 +9,54 @@ Binary format (``.scv``, little-endian)::
               payload_crc32, and for each array its offset (from the payload start), dtype, shape
     padding   to a multiple of 64 bytes
     payload   the arrays parents (n,) int32, descriptors (n, 32) uint8, weights (n,) float64,
-              children (n, k) int32, each starting on a 64-byte boundary
+              children (n, w) int32 (w: the most children a node has, at most k), each
+              starting on a 64-byte boundary
 
-Loading reads the file once (or memory-maps it) and checks its length and CRC-32 before use.
+Loading reads the file once (or memory-maps it), checks its length and CRC-32, then every
+header field (types, ranges, each array's dtype, shape and place inside the payload) before
+taking views of the arrays; the children table is rebuilt from the parents and must agree
+with the stored one.
 
-Text format (DBoW2 as modified by ORB-SLAM, ``ORBvoc.txt``)::
+Text format (DBoW2 as modified by ORB-SLAM, ``ORBvoc.txt``): see :mod:`.textformat`.
 
-    k L scoring weighting
-    parent is_leaf d0 d1 ... d31 weight      (one line per node, node 1 first; node 0 is the root)
+Limits, the same for both formats (a file outside them is refused with one line naming it):
+2 <= k <= 2^20 and 1 <= L <= 64 (:data:`~.tree.MAX_K`, :data:`~.tree.MAX_LEVELS`), finite
+weights, levels_up >= 0, parents before children. No allocation is sized by a header field:
+arrays come from the file's bytes (a few times the file's size at most while a text file is
+decoded), and the search tables from the tree the file really holds.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import struct
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import VocabularyError
 from .scoring import Scoring, Weighting
-from .tree import Vocabulary
+from .textformat import read_text, write_text
+from .tree import Vocabulary, check_header
 
 MAGIC = b"SCVOCAB\0"
 VERSION = 1
 _ALIGN = 64
 _PREFIX = struct.Struct("<8sII")
+_DENSE_CHILDREN = 1 << 26  # entries of the children table written out at most
 
 
 def _pad(n: int) -> int:
     return (-n) % _ALIGN
+
+
+def _short(value: object) -> str:
+    """A header value for a one-line message (a crafted one can be long)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def save_vocabulary(voc: Vocabulary, path: str | Path) -> None:
@@ -51,10 +68,18 @@ def save_vocabulary(voc: Vocabulary, path: str | Path) -> None:
     p = Path(path)
     tmp = p.with_name(p.name + ".part")
     if p.suffix.lower() == ".txt":
-        _save_text(voc, tmp)
+        write_text(voc, tmp)
     else:
         _save_binary(voc, tmp)
     tmp.replace(p)
+
+
+def _children_to_store(voc: Vocabulary) -> np.ndarray:
+    """The (n, w) children table, or an empty (n, 0) one when it would be over 256 MB (a wide,
+    flat tree): readers rebuild it from the parents either way."""
+    if voc.n_nodes * voc.max_children <= _DENSE_CHILDREN:
+        return voc.children.astype("<i4")
+    return np.zeros((voc.n_nodes, 0), "<i4")
 
 
 def _save_binary(voc: Vocabulary, path: Path) -> None:
@@ -62,7 +87,7 @@ def _save_binary(voc: Vocabulary, path: Path) -> None:
         "parents": voc.parents.astype("<i4"),
         "descriptors": voc.descriptors.astype(np.uint8),
         "weights": voc.weights.astype("<f8"),
-        "children": voc.children.astype("<i4"),
+        "children": _children_to_store(voc),
     }
     layout: dict[str, dict[str, object]] = {}
     offset = 0
@@ -88,16 +113,6 @@ def _save_binary(voc: Vocabulary, path: Path) -> None:
             f.write(b"\0" * _pad(arr.nbytes))
 
 
-def _save_text(voc: Vocabulary, path: Path) -> None:
-    lines = [f"{voc.k} {voc.levels}  {int(voc.scoring)} {int(voc.weighting)}"]
-    desc = voc.descriptors.astype(np.int64)
-    leaf = voc.is_leaf.astype(np.int64)
-    for i in range(1, voc.n_nodes):
-        d = " ".join(map(str, desc[i]))
-        lines.append(f"{voc.parents[i]} {leaf[i]} {d} {voc.weights[i]:.17g}")
-    path.write_text("\n".join(lines) + "\n")
-
-
 def load_vocabulary(path: str | Path, levels_up: int | None = None, mmap: bool = False) -> Vocabulary:
     """Load a vocabulary, detecting the format from the file's first bytes.
 
@@ -113,11 +128,22 @@ def load_vocabulary(path: str | Path, levels_up: int | None = None, mmap: bool =
     p = Path(path)
     if not p.is_file():
         raise VocabularyError(f"{p}: vocabulary file not found")
-    with open(p, "rb") as f:
-        head = f.read(len(MAGIC))
-    if head == MAGIC:
-        return _load_binary(p, levels_up, mmap)
-    return _load_text(p, levels_up)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(len(MAGIC))
+        if head == MAGIC:
+            return _load_binary(p, levels_up, mmap)
+        return read_text(p, levels_up)
+    except OSError as exc:
+        raise VocabularyError(f"{p}: cannot read the vocabulary file ({exc.strerror or exc})") from exc
+
+
+_ARRAYS = {  # name: (dtype, shape after n_nodes, None: the children table's width)
+    "parents": ("<i4", ()),
+    "descriptors": ("|u1", (32,)),
+    "weights": ("<f8", ()),
+    "children": ("<i4", (None,)),
+}
 
 
 def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
@@ -129,13 +155,9 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
         raise VocabularyError(f"{path}: vocabulary format version {version}, expected {VERSION}")
     if raw.size < _PREFIX.size + hlen:
         raise VocabularyError(f"{path}: truncated vocabulary file (header cut short)")
-    try:
-        header = json.loads(raw[_PREFIX.size : _PREFIX.size + hlen].tobytes())
-        start = _PREFIX.size + hlen + _pad(_PREFIX.size + hlen)
-        size = int(header["payload_bytes"])
-        layout = header["arrays"]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise VocabularyError(f"{path}: corrupt vocabulary header ({exc})") from exc
+    header = _binary_header(path, raw[_PREFIX.size : _PREFIX.size + hlen].tobytes())
+    start = _PREFIX.size + hlen + _pad(_PREFIX.size + hlen)
+    size = header["payload_bytes"]
     if raw.size < start + size:
         raise VocabularyError(
             f"{path}: truncated vocabulary file: {raw.size} bytes, expected {start + size}"
@@ -143,77 +165,79 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
     payload = raw[start : start + size]
     if zlib.crc32(np.ascontiguousarray(payload).data) != header.get("payload_crc32"):
         raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
-    arrays = {}
+    arrays = {name: _binary_array(path, payload, header, name) for name in _ARRAYS}
+    up = header["levels_up"] if levels_up is None else levels_up
     try:
-        for name in ("parents", "descriptors", "weights", "children"):
-            spec = layout[name]
-            dt = np.dtype(spec["dtype"])
-            shape = tuple(spec["shape"])
-            count = int(np.prod(shape))
-            off = int(spec["offset"])
-            arrays[name] = payload[off : off + count * dt.itemsize].view(dt).reshape(shape)
         return Vocabulary(
-            int(header["k"]), int(header["L"]), arrays["parents"], arrays["descriptors"],
-            arrays["weights"], Weighting(header["weighting"]), Scoring(header["scoring"]),
-            levels_up=header.get("levels_up") if levels_up is None else levels_up,
-            fingerprint=str(header["fingerprint"]), children=arrays["children"],
+            header["k"], header["L"], arrays["parents"], arrays["descriptors"], arrays["weights"],
+            Weighting(header["weighting"]), Scoring(header["scoring"]), levels_up=up,
+            fingerprint=header["fingerprint"], children=arrays["children"],
         )
-    except (KeyError, ValueError, TypeError) as exc:
-        raise VocabularyError(f"{path}: corrupt vocabulary arrays ({exc})") from exc
+    except VocabularyError as exc:
+        raise VocabularyError(f"{path}: {str(exc).removeprefix('vocabulary: ')}") from exc
 
 
-def _load_text(path: Path, levels_up: int | None) -> Vocabulary:
-    with open(path, "rb") as f:
-        first = f.readline()
-        body = f.read()
+def _binary_header(path: Path, text: bytes) -> dict[str, Any]:
+    """The JSON header, with every field the loader uses checked for type and range."""
     try:
-        k, levels, scoring, weighting = (int(x) for x in first.split()[:4])
-    except ValueError as exc:
+        header = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise VocabularyError(f"{path}: corrupt vocabulary header (not JSON: {exc})") from None
+    if not isinstance(header, dict):
+        raise VocabularyError(f"{path}: corrupt vocabulary header (expected a JSON object)")
+    ints = ("k", "L", "weighting", "scoring", "n_nodes", "payload_bytes")
+    for name in ints:
+        value = header.get(name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise VocabularyError(
+                f"{path}: corrupt vocabulary header: {name} must be an integer >= 0, got {_short(value)}"
+            )
+    up = header.get("levels_up")
+    if up is not None and (not isinstance(up, int) or isinstance(up, bool) or up < 0):
         raise VocabularyError(
-            f"{path}: not a vocabulary file: first line must be 'k L scoring weighting', "
-            f"got {first[:60]!r}"
-        ) from exc
-    if not (0 <= scoring <= 5 and 0 <= weighting <= 3) or k < 2 or levels < 1:
-        raise VocabularyError(
-            f"{path}: invalid vocabulary header 'k={k} L={levels} scoring={scoring} "
-            f"weighting={weighting}'"
+            f"{path}: corrupt vocabulary header: levels_up must be an integer >= 0, got {_short(up)}"
         )
-    values = _parse_numbers(body, path)
-    cols = 35
-    if values.size % cols:
-        line = values.size // cols + 2
+    if header["weighting"] > 3 or header["scoring"] > 5:
         raise VocabularyError(
-            f"{path}: each node line needs 35 numbers (parent, leaf flag, 32 bytes, weight); "
-            f"the file ends inside line {line} (truncated?)"
+            f"{path}: corrupt vocabulary header: weighting {header['weighting']} (expected 0..3), "
+            f"scoring {header['scoring']} (expected 0..5)"
         )
-    table = values.reshape(-1, cols)
-    if table.shape[0] == 0:
-        raise VocabularyError(f"{path}: no node lines after the header (truncated?)")
-    n = table.shape[0] + 1
-    parents = np.empty(n, np.int32)
-    parents[0] = -1
-    parents[1:] = table[:, 0]
-    desc = np.zeros((n, 32), np.uint8)
-    raw_desc = table[:, 2:34]
-    if raw_desc.size and (raw_desc.min() < 0 or raw_desc.max() > 255):
-        raise VocabularyError(f"{path}: descriptor bytes must lie in 0..255")
-    desc[1:] = raw_desc
-    weights = np.zeros(n, np.float64)
-    weights[1:] = table[:, 34]
-    voc = Vocabulary(k, levels, parents, desc, weights, Weighting(weighting), Scoring(scoring),
-                     levels_up=levels_up)
-    flags = table[:, 1].astype(np.int64)
-    if not np.array_equal(flags.astype(bool), voc.is_leaf[1:]):
-        bad = int(np.flatnonzero(flags.astype(bool) != voc.is_leaf[1:])[0]) + 2
-        raise VocabularyError(f"{path}: line {bad}: leaf flag disagrees with the tree")
-    return voc
-
-
-def _parse_numbers(body: bytes, path: Path) -> np.ndarray:
-    """All whitespace-separated numbers of a text body as float64, fast."""
-    text = body.decode("ascii", errors="replace")
     try:
-        values = np.array(text.split(), dtype=np.float64)
-    except ValueError as exc:
-        raise VocabularyError(f"{path}: non-numeric value in vocabulary body ({exc})") from exc
-    return values
+        check_header(header["k"], header["L"], up)
+    except VocabularyError as exc:
+        raise VocabularyError(f"{path}: header: {str(exc).removeprefix('vocabulary: ')}") from exc
+    if not isinstance(header.get("fingerprint"), str) or not isinstance(header.get("arrays"), dict):
+        raise VocabularyError(f"{path}: corrupt vocabulary header: no fingerprint or array table")
+    return header
+
+
+def _binary_array(path: Path, payload: np.ndarray, header: dict[str, Any], name: str) -> np.ndarray:
+    """One array of the payload, as a view, after checking its dtype, shape and place."""
+    dtype, tail = _ARRAYS[name]
+    spec = header["arrays"].get(name)
+    n = header["n_nodes"]
+    try:
+        offset = spec["offset"]
+        shape = tuple(spec["shape"])
+        ok = (
+            spec["dtype"] == dtype and isinstance(offset, int) and offset >= 0 and offset % _ALIGN == 0
+            and len(shape) == 1 + len(tail) and shape[0] == n
+            and all(want is None or want == got for want, got in zip(tail, shape[1:], strict=True))
+            and all(isinstance(x, int) and x >= 0 for x in shape)
+        )
+    except (KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise VocabularyError(
+            f"{path}: corrupt vocabulary header: array {name!r} must be {dtype} of shape "
+            f"({n}{''.join(', ' + ('w' if t is None else str(t)) for t in tail)}) at a multiple of "
+            f"{_ALIGN} bytes, got {_short(spec)}"
+        )
+    itemsize = np.dtype(dtype).itemsize
+    count = math.prod(shape)
+    if offset + count * itemsize > payload.size:
+        raise VocabularyError(
+            f"{path}: corrupt vocabulary header: array {name!r} ({count * itemsize} bytes at "
+            f"{offset}) runs past the {payload.size}-byte payload"
+        )
+    return payload[offset : offset + count * itemsize].view(dtype).reshape(shape)

@@ -173,5 +173,4 @@ def train_vocabulary(
     else:
         weights[voc.word_nodes] = 1.0
     log.info("trained vocabulary: %d nodes, %d words", n, voc.n_words)
-    return Vocabulary(k, levels, voc.parents, voc.descriptors, weights, weighting, scoring,
-                      levels_up, children=voc.children)
+    return Vocabulary(k, levels, voc.parents, voc.descriptors, weights, weighting, scoring, levels_up)

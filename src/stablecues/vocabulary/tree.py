@@ -9,8 +9,20 @@ import numpy as np
 
 from ..errors import InputError, VocabularyError
 from ..types import DESCRIPTOR_BYTES, BowVector, DescriptorKind, FeatureVector
+from . import engine as _engine
 from .descriptors import as_words, check_descriptors
 from .scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
+
+#: Largest branching factor a vocabulary may declare (a flat vocabulary of 2^20 words; DBoW2's
+#: text loader stops at 20). Tables are sized by the children nodes really have, never by k.
+MAX_K = 1 << 20
+#: Deepest tree a vocabulary may declare (DBoW2's text loader stops at 10).
+MAX_LEVELS = 64
+#: The padded search table (internal nodes x most children of any node) may hold at most this
+#: many slots per node, plus :data:`_SLOTS_SPARE`: a tree whose fan-out is so uneven that the
+#: table would dwarf the tree itself is refused rather than allocated (36 bytes a slot).
+_SLOTS_PER_NODE = 16
+_SLOTS_SPARE = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -35,18 +47,26 @@ class Vocabulary:
     than its children's, as in DBoW2's files. Leaves may sit at any depth up to ``levels``.
 
     Args:
-        k: branching factor.
-        levels: depth L of the tree (the root is level 0, leaves at most at level L).
-        parents: (n,) int32 parent of each node (-1 for the root).
+        k: branching factor, 2 <= k <= :data:`MAX_K`.
+        levels: depth L of the tree (the root is level 0, leaves at most at level L),
+            1 <= L <= :data:`MAX_LEVELS`.
+        parents: (n,) integer parent of each node (-1 for the root).
         descriptors: (n, 32) uint8 node centres (the root's is ignored).
-        weights: (n,) float64 node weights (used for leaves).
+        weights: (n,) finite float node weights (used for leaves; <= 0 stops a word).
         weighting: how BoW weights are made.
         scoring: how BoW vectors are compared (decides their normalisation).
-        levels_up: default level of the direct index, counted up from the leaves' level L;
-            None: ``L - 2``, i.e. the direct index groups features under the ~k^2 nodes of
-            level 2, as ORB-SLAM does with its 6-level vocabulary and ``levelsup = 4`` (coarser
-            groups make matching slower, finer ones miss correspondences).
+        levels_up: default level of the direct index, counted up from the leaves' level L
+            (>= 0); None: ``L - 2``, i.e. the direct index groups features under the ~k^2
+            nodes of level 2, as ORB-SLAM does with its 6-level vocabulary and ``levelsup = 4``
+            (coarser groups make matching slower, finer ones miss correspondences).
         fingerprint: identity of the tree; computed from the arrays when not given.
+        children: the (n, w) children table, when the caller has it; it is checked against
+            ``parents``, which decide.
+
+    Raises:
+        VocabularyError: arrays that do not form such a tree, out-of-range k, L or levels_up,
+            or weights that are NaN or infinite. Messages start with "vocabulary:"; the file
+            loaders replace that with the file's name.
     """
 
     def __init__(
@@ -62,56 +82,72 @@ class Vocabulary:
         fingerprint: str | None = None,
         children: np.ndarray | None = None,
     ) -> None:
-        n = parents.shape[0]
-        if n < 1 or parents[0] != -1:
-            raise VocabularyError("vocabulary: node 0 must be the root (parent -1)")
-        if descriptors.shape != (n, DESCRIPTOR_BYTES) or weights.shape != (n,):
-            raise VocabularyError(
-                f"vocabulary: arrays disagree: {n} parents, descriptors {descriptors.shape}, "
-                f"weights {weights.shape}"
-            )
-        if n > 1 and (np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, n))):
-            raise VocabularyError("vocabulary: every node's parent must come before it")
-        if k < 2 or levels < 1:
-            raise VocabularyError(f"vocabulary: need k >= 2 and L >= 1, got k={k}, L={levels}")
+        check_header(k, levels, levels_up)
         self.k = int(k)
         self.levels = int(levels)
-        self.parents = np.ascontiguousarray(parents, np.int32)
-        self.descriptors = np.ascontiguousarray(descriptors, np.uint8)
-        self.weights = np.ascontiguousarray(weights, np.float64)
+        self.parents, self.descriptors, self.weights = _check_arrays(parents, descriptors, weights)
         self.weighting = Weighting(weighting)
         self.scoring = Scoring(scoring)
-        self.children = children if children is not None else _children_table(self.parents, self.k)
-        if self.children.shape != (n, self.k):
-            raise VocabularyError(f"vocabulary: a node has more than k={self.k} children")
-        self.is_leaf = self.children[:, 0] < 0
-        self.is_leaf[0] = n == 1
+        n = self.n_nodes
+        inner, kids = _child_table(self.parents, self.k)
+        self.is_leaf = np.ones(n, bool)
+        self.is_leaf[inner] = False
+        self._dense_children: np.ndarray | None = None
+        self._build_search_tables(inner, kids)
+        if children is not None and not self._same_children(children):
+            raise VocabularyError("vocabulary: the children table disagrees with the parents")
         self.word_nodes = np.flatnonzero(self.is_leaf).astype(np.int32)
         self.node_word = np.full(n, -1, np.int32)
         self.node_word[self.word_nodes] = np.arange(self.word_nodes.size, dtype=np.int32)
-        self.depth = _depths(self.parents)
-        if int(self.depth.max(initial=0)) > self.levels:
-            raise VocabularyError(
-                f"vocabulary: tree is {int(self.depth.max())} levels deep but the header says L={levels}"
-            )
-        self._build_search_tables()
+        self.depth = _depths(self.parents, self.levels)
         self.levels_up = max(self.levels - 2, 0) if levels_up is None else int(levels_up)
         self._di_cache: dict[int, np.ndarray] = {}
         self._fingerprint = fingerprint
+        self._engine_request = "auto"
+        self._engine: str | None = None
 
-    def _build_search_tables(self) -> None:
-        """Per internal node, its children's centres side by side: one contiguous (k * 4)
-        uint64 row, so each level of the descent gathers one block per descriptor."""
-        internal = np.flatnonzero(~self.is_leaf).astype(np.int32)
-        self._row = np.full(self.n_nodes, -1, np.int32)
-        self._row[internal] = np.arange(internal.size, dtype=np.int32)
-        kids = self.children[internal]  # (I, k)
+    def _build_search_tables(self, inner: np.ndarray, kids: np.ndarray) -> None:
+        """Per inner node, its children's centres side by side: one contiguous (w * 4) uint64
+        row, so each level of the descent gathers one block per descriptor.
+
+        Args:
+            inner: (I,) int32 ids of the nodes that have children, ascending.
+            kids: (I, w) int32 their children in id order, -1 padded.
+        """
+        self._row = np.full(self.n_nodes, -1, np.int32)  # row of each inner node, -1: a leaf
+        self._row[inner] = np.arange(inner.size, dtype=np.int32)
         words = as_words(self.descriptors)
-        blocks = words[np.where(kids >= 0, kids, 0)]  # (I, k, 4)
-        self._blocks = np.ascontiguousarray(blocks.reshape(internal.size, self.k * 4))
+        blocks = words[np.where(kids >= 0, kids, 0)]  # (I, w, 4)
+        self._blocks = np.ascontiguousarray(blocks.reshape(inner.size, kids.shape[1] * 4))
         self._block_kids = kids
+        self._block_counts = (kids >= 0).sum(axis=1, dtype=np.int32)
         missing = kids < 0
         self._penalty = (np.where(missing, 1024, 0).astype(np.uint32) if missing.any() else None)
+
+    def _same_children(self, given: np.ndarray) -> bool:
+        """Whether ``given`` is this tree's (n, w') children table (w' >= w, -1 padded), or an
+        empty (n, 0) one (not stored)."""
+        given = np.asarray(given)
+        w = self._block_kids.shape[1]
+        if given.ndim != 2 or given.shape[0] != self.n_nodes:
+            return False
+        if given.shape[1] == 0:
+            return True
+        inner = ~self.is_leaf
+        return bool(
+            given.shape[1] >= w and np.array_equal(given[inner, :w], self._block_kids)
+            and (given[inner, w:] == -1).all() and (given[self.is_leaf] == -1).all()
+        )
+
+    @property
+    def children(self) -> np.ndarray:
+        """(n, w) int32 children of each node in id order, -1 padded; w is the most children
+        any node has (at most k). Built on first use (n x w entries: large for a wide tree)."""
+        if self._dense_children is None:
+            table = np.full((self.n_nodes, self._block_kids.shape[1]), -1, np.int32)
+            table[~self.is_leaf] = self._block_kids
+            self._dense_children = table
+        return self._dense_children
 
     # ------------------------------------------------------------------ properties
     @property
@@ -121,6 +157,11 @@ class Vocabulary:
     @property
     def n_words(self) -> int:
         return int(self.word_nodes.shape[0])
+
+    @property
+    def max_children(self) -> int:
+        """The most children any node has (at most k)."""
+        return int(self._block_kids.shape[1])
 
     @property
     def word_weights(self) -> np.ndarray:
@@ -142,6 +183,34 @@ class Vocabulary:
     def descriptor_kind(self) -> DescriptorKind:
         """What the words are made of: binary, 32 bytes (ORB's descriptors)."""
         return DescriptorKind("binary", int(self.descriptors.shape[1]))
+
+    @property
+    def engine(self) -> str:
+        """The engine this vocabulary's transforms run on: ``"compiled"`` or ``"numpy"``.
+
+        Set it to ``"auto"`` (the default: compiled when numba works here), ``"compiled"`` or
+        ``"numpy"``; both engines give identical results (see :mod:`.engine`). Reading it the
+        first time under ``"auto"`` loads the compiled kernels.
+        """
+        if self._engine is None:
+            self._engine = _engine.resolve(self._engine_request)
+        return self._engine
+
+    @engine.setter
+    def engine(self, name: str) -> None:
+        _engine.check_engine(name)
+        self._engine_request = name
+        self._engine = None
+
+    def warm_up(self) -> str:
+        """Choose the engine and load its kernels now, and build the default direct-index table.
+
+        The first transform would otherwise pay it: with numba, importing it and loading the
+        cached machine code (about 0.4 s), or compiling it the first time on a machine (a few
+        seconds). Call it when a SLAM system starts, before the loop. Returns the engine.
+        """
+        self.direct_index_table()
+        return self.engine
 
     def info(self) -> VocabularyInfo:
         return VocabularyInfo(
@@ -180,11 +249,23 @@ class Vocabulary:
         self._check_kind(descriptors)
         check_descriptors(descriptors)
         n = descriptors.shape[0]
-        cur = np.zeros(n, np.int32)
         if n == 0 or self.n_nodes == 1:
-            return cur
-        q = as_words(descriptors)
-        k = self.k
+            return np.zeros(n, np.int32)
+        if self.engine == "compiled":
+            out = np.empty(n, np.int32)
+            kernels = _engine.compiled_kernels()
+            assert kernels is not None  # resolved to "compiled" only when they load
+            q = as_words(descriptors)
+            q = q if q.flags.writeable else q.copy()  # one compiled signature: writable arrays
+            kernels.descend(q, self._blocks, self._block_kids, self._block_counts, self._row, out)
+            return out
+        return self._leaves_numpy(as_words(descriptors))
+
+    def _leaves_numpy(self, q: np.ndarray) -> np.ndarray:
+        """The NumPy descent: all descriptors a level at a time. ``q``: (N, 4) uint64."""
+        n = q.shape[0]
+        cur = np.zeros(n, np.int32)
+        k = self._block_kids.shape[1]
         active = np.arange(n)
         while active.size:
             rows = self._row[cur[active]]
@@ -215,17 +296,17 @@ class Vocabulary:
                 "train a vocabulary for them"
             )
 
-    def direct_index_nodes(self, leaves: np.ndarray, levels_up: int | None = None) -> np.ndarray:
-        """Node at level ``L - levels_up`` above each leaf (the leaf itself when shallower).
+    def _levels_up(self, levels_up: int | None) -> int:
+        if levels_up is None:
+            return self.levels_up
+        if not isinstance(levels_up, int | np.integer) or levels_up < 0:
+            raise InputError(f"levels_up: expected an integer >= 0, got {levels_up!r:.60}")
+        return int(levels_up)
 
-        Args:
-            leaves: (N,) int32 leaf node ids.
-            levels_up: levels above the leaves; defaults to the vocabulary's ``levels_up``.
-
-        Returns:
-            (N,) int32 node ids.
-        """
-        up = self.levels_up if levels_up is None else int(levels_up)
+    def direct_index_table(self, levels_up: int | None = None) -> np.ndarray:
+        """(n,) int32: for every node, its ancestor at level ``L - levels_up`` (itself when
+        shallower). Computed once per ``levels_up`` and kept."""
+        up = self._levels_up(levels_up)
         table = self._di_cache.get(up)
         if table is None:
             target = max(self.levels - up, 0)
@@ -238,10 +319,23 @@ class Vocabulary:
                 table[deep] = self.parents[table[deep]]
                 depth[deep] -= 1
             self._di_cache[up] = table
-        return table[leaves]
+        return table
+
+    def direct_index_nodes(self, leaves: np.ndarray, levels_up: int | None = None) -> np.ndarray:
+        """Node at level ``L - levels_up`` above each leaf (the leaf itself when shallower).
+
+        Args:
+            leaves: (N,) int32 leaf node ids.
+            levels_up: levels above the leaves (>= 0); defaults to the vocabulary's ``levels_up``.
+
+        Returns:
+            (N,) int32 node ids.
+        """
+        return self.direct_index_table(levels_up)[leaves]
 
     def transform(
-        self, descriptors: np.ndarray, levels_up: int | None = None
+        self, descriptors: np.ndarray, levels_up: int | None = None,
+        weights: np.ndarray | None = None,
     ) -> tuple[BowVector, FeatureVector]:
         """Bag-of-words vector and direct index of one image's descriptors.
 
@@ -251,69 +345,193 @@ class Vocabulary:
         normalisation (dot product) TF weights are divided by the number of distinct words, as
         DBoW2 does.
 
+        Per-feature ``weights`` (e.g. how stable a feature's semantic class is) scale what each
+        feature gives its word before normalisation: with TF-IDF and TF a word's value is
+        ``sum over its features of weights[f] * word_weight``; with IDF and binary the word
+        still counts once, as ``word_weight * max over its features of weights[f]``. A feature
+        of weight 0 is dropped as a stopped word is (node -1 in the direct index). Without
+        ``weights`` (None) the result is DBoW2's, exactly; all-ones weights give the same.
+
         Args:
             descriptors: (N, 32) uint8.
-            levels_up: direct-index level above the leaves (default: ``self.levels_up``).
+            levels_up: direct-index level above the leaves (>= 0; default: ``self.levels_up``).
+            weights: (N,) finite floats >= 0, one per descriptor, or None.
 
         Returns:
             (BowVector, FeatureVector); both empty for N = 0.
 
         Raises:
             InputError: descriptors of another kind than the vocabulary's words, e.g. "descriptors
-                are 128-dim float32 but the vocabulary holds 32-byte binary words: ...".
+                are 128-dim float32 but the vocabulary holds 32-byte binary words: ..."; weights
+                of the wrong shape, negative, NaN or infinite; a negative ``levels_up``.
         """
-        up = self.levels_up if levels_up is None else int(levels_up)
-        leaves = self.leaves_of(descriptors)
-        if leaves.size == 0:
+        up = self._levels_up(levels_up)
+        self._check_kind(descriptors)
+        check_descriptors(descriptors)
+        n = descriptors.shape[0]
+        fw = _feature_weights(weights, n)
+        if n == 0:
             return BowVector.empty(), FeatureVector(np.zeros(0, np.int32), up)
+        if self.engine == "compiled" and self.n_nodes > 1:
+            kernels = _engine.compiled_kernels()
+            assert kernels is not None  # resolved to "compiled" only when they load
+            q = as_words(descriptors)
+            words, values, nodes = kernels.transform(
+                q if q.flags.writeable else q.copy(), self._blocks, self._block_kids,
+                self._block_counts, self._row, self.weights,
+                self.node_word, self.direct_index_table(up),
+                fw if fw is not None else np.empty(0), fw is not None, self._adds_features,
+            )
+        else:
+            leaves = self.leaves_of(descriptors) if self.n_nodes > 1 else np.zeros(n, np.int32)
+            words, values, nodes = self._assemble_numpy(leaves, up, fw)
+        if words.size == 0:
+            return BowVector.empty(), FeatureVector(nodes, up)
+        if self._adds_features and self.scoring == Scoring.DOT_PRODUCT:
+            values = values / words.size
+        return BowVector(words, normalise(values, self.scoring)), FeatureVector(nodes, up)
+
+    @property
+    def _adds_features(self) -> bool:
+        """TF-IDF and TF add up a word's features; IDF and binary count a word once."""
+        return self.weighting in (Weighting.TF_IDF, Weighting.TF)
+
+    def _assemble_numpy(
+        self, leaves: np.ndarray, up: int, fw: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Words (ascending), their values before normalisation, and direct-index nodes."""
         w = self.weights[leaves]
         ok = w > 0
+        if fw is not None:
+            ok &= fw > 0
         nodes = np.where(ok, self.direct_index_nodes(leaves, up), -1).astype(np.int32)
         words = self.node_word[leaves[ok]]
         if words.size == 0:
-            return BowVector.empty(), FeatureVector(nodes, up)
+            return np.zeros(0, np.int32), np.zeros(0, np.float64), nodes
         uniq, inverse = np.unique(words, return_inverse=True)
-        if self.weighting in (Weighting.TF_IDF, Weighting.TF):
-            values: np.ndarray = np.bincount(inverse, weights=w[ok], minlength=uniq.size)
-            if self.scoring == Scoring.DOT_PRODUCT:
-                values = values / uniq.size
+        if self._adds_features:
+            add = w[ok] if fw is None else w[ok] * fw[ok]
+            values: np.ndarray = np.bincount(inverse, weights=add, minlength=uniq.size)
         else:
             values = self.weights[self.word_nodes[uniq]].astype(np.float64)
-        values = normalise(values, self.scoring)
-        return BowVector(uniq.astype(np.int32), values), FeatureVector(nodes, up)
+            if fw is not None:
+                top = np.zeros(uniq.size)
+                np.maximum.at(top, inverse, fw[ok])
+                values = values * top
+        return uniq.astype(np.int32), values, nodes
 
 
-def _children_table(parents: np.ndarray, k: int) -> np.ndarray:
-    """(n, k) int32 children of each node in id order, -1 padded."""
+def _feature_weights(weights: np.ndarray | None, n: int) -> np.ndarray | None:
+    """Checked (N,) float64 per-feature weights, or None."""
+    if weights is None:
+        return None
+    arr = np.asarray(weights)
+    if arr.shape != (n,) or arr.dtype.kind not in "fiub":
+        raise InputError(
+            f"weights: expected {n} numbers (one per descriptor), got a {arr.dtype} array of "
+            f"shape {arr.shape}"
+        )
+    fw = np.ascontiguousarray(arr, np.float64)
+    if n and not (np.isfinite(fw).all() and fw.min() >= 0):
+        raise InputError("weights: expected finite numbers >= 0, got negative, NaN or infinite ones")
+    return fw
+
+
+def check_header(k: int, levels: int, levels_up: int | None) -> None:
+    """k, L and levels_up within the documented limits (integers)."""
+    for name, value, lo, hi in (("k", k, 2, MAX_K), ("L", levels, 1, MAX_LEVELS)):
+        if not isinstance(value, int | np.integer) or not lo <= value <= hi:
+            raise VocabularyError(f"vocabulary: expected {lo} <= {name} <= {hi}, got {name}={value!r:.60}")
+    if levels_up is not None and (not isinstance(levels_up, int | np.integer) or levels_up < 0):
+        raise VocabularyError(f"vocabulary: expected levels_up >= 0, got {levels_up!r:.60}")
+
+
+def _check_arrays(
+    parents: np.ndarray, descriptors: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The node arrays, checked and made contiguous: int32 parents, uint8 centres, float64
+    finite weights."""
+    parents, descriptors, weights = np.asarray(parents), np.asarray(descriptors), np.asarray(weights)
+    n = parents.shape[0] if parents.ndim == 1 else -1
+    if n < 1 or parents.dtype.kind not in "iu" or int(parents[0]) != -1:
+        raise VocabularyError("vocabulary: node 0 must be the root (parent -1) of integer parents")
+    if descriptors.shape != (n, DESCRIPTOR_BYTES) or weights.shape != (n,):
+        raise VocabularyError(
+            f"vocabulary: arrays disagree: {n} parents, descriptors {descriptors.shape}, "
+            f"weights {weights.shape}"
+        )
+    if n > 1 and (np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, n))):
+        raise VocabularyError("vocabulary: every node's parent must come before it")
+    if descriptors.dtype != np.uint8 or weights.dtype.kind not in "fiu":
+        raise VocabularyError(
+            f"vocabulary: expected uint8 centres and float weights, got {descriptors.dtype} and "
+            f"{weights.dtype}"
+        )
+    w = np.ascontiguousarray(weights, np.float64)
+    if not w.flags.writeable:  # a memory-mapped file: the compiled kernels take writable arrays
+        w = w.copy()
+    if not np.isfinite(w).all():
+        bad = int(np.flatnonzero(~np.isfinite(w))[0])
+        raise VocabularyError(f"vocabulary: node {bad} has weight {w[bad]}: weights must be finite")
+    return np.ascontiguousarray(parents, np.int32), np.ascontiguousarray(descriptors), w
+
+
+def _child_table(parents: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes that have children, and their children: (I,) int32 ids ascending, (I, w) int32
+    children in id order, -1 padded, w the most children any node has (at most k).
+
+    Sized by the tree, never by k; a tree whose table would be far larger than the tree (a few
+    nodes with very many children, many with few) is refused before anything is allocated.
+    """
     n = parents.shape[0]
-    table = np.full((n, k), -1, np.int32)
     if n <= 1:
-        return table
+        return np.zeros(0, np.int32), np.zeros((0, 1), np.int32)
     child = np.arange(1, n, dtype=np.int32)
     par = parents[1:].astype(np.int64)
-    order = np.argsort(par, kind="stable")
-    par_sorted, child_sorted = par[order], child[order]
-    starts = np.searchsorted(par_sorted, par_sorted, side="left")
-    slot = np.arange(par_sorted.size) - starts
-    if slot.size and int(slot.max()) >= k:
+    if np.all(par[1:] >= par[:-1]):  # breadth-first files: already grouped by parent
+        par_sorted, child_sorted = par, child
+    else:
+        order = np.argsort(par, kind="stable")
+        par_sorted, child_sorted = par[order], child[order]
+    index = np.arange(par_sorted.size)
+    first = np.empty(par_sorted.size, bool)  # where a parent's run of children begins
+    first[0] = True
+    np.not_equal(par_sorted[1:], par_sorted[:-1], out=first[1:])
+    slot = index - np.maximum.accumulate(np.where(first, index, 0))
+    width = int(slot.max()) + 1
+    if width > k:
         bad = int(par_sorted[int(slot.argmax())])
         raise VocabularyError(f"vocabulary: node {bad} has more than k={k} children")
-    table[par_sorted, slot] = child_sorted
-    return table
+    inner = par_sorted[first].astype(np.int32)
+    if inner.size * width > _SLOTS_PER_NODE * n + _SLOTS_SPARE:
+        raise VocabularyError(
+            f"vocabulary: {n} nodes whose fan-out is too uneven (up to {width} children, "
+            f"{inner.size} inner nodes): the search table would need "
+            f"{inner.size * width * 36 / 2**30:.1f} GiB"
+        )
+    table = np.full(inner.size * width, -1, np.int32)
+    table[(np.cumsum(first) - 1) * width + slot] = child_sorted
+    return inner, table.reshape(inner.size, width)
 
 
-def _depths(parents: np.ndarray) -> np.ndarray:
-    """(n,) int16 depth of each node (root 0); parents precede children."""
+def _depths(parents: np.ndarray, levels: int) -> np.ndarray:
+    """(n,) int16 depth of each node (root 0); parents precede children.
+
+    Raises:
+        VocabularyError: a node deeper than ``levels``.
+    """
     n = parents.shape[0]
     depth = np.zeros(n, np.int16)
     if n <= 1:
         return depth
-    # parents precede children, so a few vectorised passes settle every depth
+    # parents precede children, so one vectorised pass per level settles every depth; a
+    # tree no deeper than L settles within L + 1 passes
     par = parents.astype(np.int64)
     par[0] = 0
-    while True:
+    for _ in range(levels + 1):
         new = depth[par] + 1
         new[0] = 0
         if np.array_equal(new, depth):
             return depth
         depth = new.astype(np.int16)
+    raise VocabularyError(f"vocabulary: the tree is more than L={levels} levels deep")

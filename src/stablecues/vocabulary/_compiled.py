@@ -1,0 +1,164 @@
+"""Compiled transform kernels (numba), the fast path of :mod:`stablecues.vocabulary.engine`.
+
+Imported only through :func:`stablecues.vocabulary.engine.compiled_kernels`, never at package
+import: importing this module imports numba. The kernels are compiled on first use and cached on
+disk (``cache=True``: next to this file, or numba's user cache directory when the package folder
+is read-only), so later processes load machine code instead of compiling it.
+
+The kernels compute exactly what the NumPy path computes (same greedy descent with ties to the
+lowest child, same summation order per word), so their results are identical to the last bit;
+``tests/vocabulary/test_vocab_engine.py`` checks it on real descriptors.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import njit, types
+from numba.extending import intrinsic
+
+# Descriptors descend in groups: at each level every descriptor of the group picks its child
+# before any goes one level deeper, so the memory loads of different descriptors overlap
+# instead of waiting one after another (a tree of 10^5 words does not fit in the L2 cache).
+GROUP = 16
+_SHIFT = np.uint64(32)
+_SLOT_MASK = np.uint64((1 << 32) - 1)
+_NO_CHILD = np.uint64(1 << 62)
+
+
+def _popcount_typer(typingctx: Any, x: Any) -> Any:
+    """Bit count of a uint64 (LLVM's ctpop: one POPCNT instruction on x86-64)."""
+    sig = types.uint64(types.uint64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
+_popcount: Any = intrinsic(_popcount_typer)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def descend(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.ndarray,
+            row: np.ndarray, out: np.ndarray) -> None:
+    """Leaf reached by each descriptor (greedy descent, ties to the lowest child slot).
+
+    Args:
+        q: (N, 4) uint64 descriptors.
+        blocks: (I, W * 4) uint64 children's centres of each internal node, side by side.
+        kids: (I, W) int32 children of each internal node, -1 padded at the end.
+        counts: (I,) int32 number of children of each internal node.
+        row: (n,) int32 row of each node in ``blocks`` / ``kids``; -1 for leaves.
+        out: (N,) int32, filled with the leaf node ids.
+    """
+    n = q.shape[0]
+    rows = np.empty(GROUP, np.int64)
+    for s in range(0, n, GROUP):
+        m = min(GROUP, n - s)
+        for g in range(m):
+            rows[g] = row[0]
+            out[s + g] = 0
+        active = m if row[0] >= 0 else 0
+        while active > 0:
+            active = 0
+            for g in range(m):
+                r = rows[g]
+                if r < 0:
+                    continue
+                i = s + g
+                q0 = q[i, 0]
+                q1 = q[i, 1]
+                q2 = q[i, 2]
+                q3 = q[i, 3]
+                # (distance, slot) in one key: the smallest key is the nearest child and, among
+                # equally near ones, the lowest slot; a branch-free min, as the distances are
+                # too random for the branch predictor
+                best = _NO_CHILD
+                for c in range(counts[r]):
+                    b = 4 * c
+                    d = (_popcount(q0 ^ blocks[r, b]) + _popcount(q1 ^ blocks[r, b + 1])
+                         + _popcount(q2 ^ blocks[r, b + 2]) + _popcount(q3 ^ blocks[r, b + 3]))
+                    best = min(best, (d << _SHIFT) | np.uint64(c))
+                chosen = kids[r, np.int64(best & _SLOT_MASK)]
+                out[i] = chosen
+                nxt = row[chosen]
+                rows[g] = nxt
+                if nxt >= 0:
+                    active += 1
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def assemble(leaves: np.ndarray, node_weight: np.ndarray, node_word: np.ndarray,
+             di_table: np.ndarray, feature_weight: np.ndarray, weighted: bool,
+             add: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """BoW words and values (before normalisation) and direct-index nodes of the leaves.
+
+    Args:
+        leaves: (N,) int32 leaf of each feature.
+        node_weight: (n,) float64 weight of each node.
+        node_word: (n,) int32 word id of each node (-1 for internal nodes).
+        di_table: (n,) int32 direct-index node of each node.
+        feature_weight: (N,) float64 weight of each feature (read only when ``weighted``).
+        weighted: whether ``feature_weight`` applies.
+        add: TF-IDF / TF (each feature adds its weight) rather than IDF / binary (each word
+            once, scaled by the largest weight of its features).
+
+    Returns:
+        words (M,) int32 ascending, values (M,) float64, nodes (N,) int32 (-1: dropped).
+    """
+    n = leaves.shape[0]
+    nodes = np.empty(n, np.int32)
+    keys = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        leaf = leaves[i]
+        ok = node_weight[leaf] > 0
+        if weighted:
+            ok = ok and feature_weight[i] > 0
+        if ok:
+            nodes[i] = di_table[leaf]
+            keys[m] = np.int64(node_word[leaf]) * n + i  # word-major, features in order
+            m += 1
+        else:
+            nodes[i] = -1
+    keys = np.sort(keys[:m])
+    words = np.empty(m, np.int32)
+    values = np.empty(m, np.float64)
+    top = np.empty(m, np.float64)  # IDF / binary: the largest feature weight of each word
+    u = -1
+    last = -1
+    for j in range(m):
+        word = keys[j] // n
+        i = keys[j] - word * n
+        ww = node_weight[leaves[i]]
+        fw = feature_weight[i] if weighted else 1.0
+        if word != last:
+            u += 1
+            last = word
+            words[u] = word
+            values[u] = 0.0 if add else ww
+            top[u] = fw
+        if add:
+            # the same products, summed in the same order, as np.bincount over the features
+            values[u] += ww * fw if weighted else ww
+        elif fw > top[u]:
+            top[u] = fw
+    u += 1
+    if weighted and not add:
+        for j in range(u):
+            values[j] = values[j] * top[j]
+    return words[:u], values[:u], nodes
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def transform(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.ndarray,
+              row: np.ndarray,
+              node_weight: np.ndarray, node_word: np.ndarray, di_table: np.ndarray,
+              feature_weight: np.ndarray, weighted: bool,
+              add: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`descend` then :func:`assemble`, in one call (one dispatch from Python)."""
+    leaves = np.empty(q.shape[0], np.int32)
+    descend(q, blocks, kids, counts, row, leaves)
+    return assemble(leaves, node_weight, node_word, di_table, feature_weight, weighted, add)

@@ -1,0 +1,112 @@
+"""Where the transform runs: compiled kernels when numba is there, NumPy otherwise.
+
+Two engines compute the same thing, to the last bit:
+
+``"compiled"``
+    numba kernels (:mod:`stablecues.vocabulary._compiled`): the greedy descent a group of
+    descriptors at a time with hardware popcount, and the BoW vector and direct index in one
+    pass. numba is a dependency, so ``pip install -e .`` brings it. Machine code is cached on
+    disk: only the first process on a machine compiles (a few seconds); later ones load it on
+    their first transform (numba's import plus the cache, about 0.4 s), or earlier with
+    :meth:`Vocabulary.warm_up`.
+``"numpy"``
+    the vectorised NumPy path, breadth-first over all descriptors at once. The fallback when
+    numba cannot be imported or fails to compile, and the reference the compiled engine is
+    tested against.
+
+The engine is chosen per vocabulary (:attr:`Vocabulary.engine`): ``"auto"`` (the default) takes
+the compiled one when it is available. Set the environment variable ``STABLECUES_ENGINE=numpy``
+to make ``"auto"`` mean NumPy in a whole process (it is read when a vocabulary first chooses).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from types import ModuleType
+
+import numpy as np
+
+from ..errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("auto", "compiled", "numpy")
+ENV_VARIABLE = "STABLECUES_ENGINE"
+
+_state: dict[str, ModuleType | None] = {}
+
+
+def compiled_kernels() -> ModuleType | None:
+    """The compiled kernels module, or None when numba is missing or does not work here.
+
+    The first call imports numba and compiles (or loads from the cache) the kernels on a tiny
+    input, so that a failure shows here, once, and the caller falls back to NumPy.
+    """
+    if "kernels" not in _state:
+        _state["kernels"] = _load_kernels()
+    return _state["kernels"]
+
+
+def _load_kernels() -> ModuleType | None:
+    try:
+        from . import _compiled
+    except ImportError as exc:
+        log.info("numba is not available (%s): the vocabulary transform runs on NumPy", exc)
+        return None
+    try:
+        _warm(_compiled)
+    except Exception as exc:  # noqa: BLE001 - any compiler failure means: use NumPy
+        log.warning("compiling the vocabulary kernels failed (%s): using NumPy", exc)
+        return None
+    return _compiled
+
+
+def _warm(kernels: ModuleType) -> None:
+    """Compile (or load from the cache) every kernel with the argument types used later."""
+    q = np.zeros((1, 4), np.uint64)
+    blocks = np.zeros((1, 8), np.uint64)
+    kids = np.array([[1, 2]], np.int32)
+    counts = np.array([2], np.int32)
+    row = np.array([0, -1, -1], np.int32)
+    out = np.empty(1, np.int32)
+    kernels.descend(q, blocks, kids, counts, row, out)
+    weight = np.array([0.0, 1.0, 1.0])
+    word = np.array([-1, 0, 1], np.int32)
+    table = np.arange(3, dtype=np.int32)
+    fw = np.ones(1)
+    kernels.assemble(out, weight, word, table, fw, True, True)
+    kernels.transform(q, blocks, kids, counts, row, weight, word, table, fw, False, False)
+
+
+def resolve(requested: str) -> str:
+    """The engine that ``requested`` means here: ``"compiled"`` or ``"numpy"``.
+
+    Args:
+        requested: ``"auto"``, ``"compiled"`` or ``"numpy"``.
+
+    Raises:
+        ConfigError: an unknown engine name (also in ``STABLECUES_ENGINE``).
+        ImportError: ``"compiled"`` asked for explicitly where numba is not available, with
+            the command that installs it.
+    """
+    check_engine(requested)
+    if requested == "auto":
+        env = os.environ.get(ENV_VARIABLE, "auto").strip().lower() or "auto"
+        if env not in ENGINES:
+            raise ConfigError(f"{ENV_VARIABLE}={env!r}: expected one of {', '.join(ENGINES)}")
+        if env != "auto":
+            return resolve(env)
+        return "compiled" if compiled_kernels() is not None else "numpy"
+    if requested == "compiled" and compiled_kernels() is None:
+        raise ImportError(
+            "the compiled vocabulary engine needs numba, which is missing or failed to compile "
+            "here: pip install numba (or use engine='numpy')"
+        )
+    return requested
+
+
+def check_engine(name: str) -> None:
+    """Raise ConfigError unless ``name`` is one of :data:`ENGINES`."""
+    if name not in ENGINES:
+        raise ConfigError(f"vocabulary engine {name!r}: expected one of {', '.join(ENGINES)}")

@@ -1,0 +1,42 @@
+"""Semantic weighting in the preparation path: the BoW vector re-weighted, every feature kept."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from stablecues.detection import FramePreparer, preset
+from stablecues.types import Frame
+from stablecues.vocabulary import default_vocabulary
+
+
+def textured(seed: int = 0, shape: tuple[int, int] = (240, 320)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, (shape[0] // 8, shape[1] // 8), dtype=np.uint8)
+    return np.kron(small, np.ones((8, 8), np.uint8))
+
+
+def frame(image: np.ndarray, **kwargs: object) -> Frame:
+    return Frame(index=3, name="f3", timestamp=0.0, image=image, **kwargs)  # type: ignore[arg-type]
+
+
+def test_semantic_weighting_reweights_the_bow_and_keeps_every_feature() -> None:
+    vocab = default_vocabulary()
+    img = textured(4)
+    labels = np.full(img.shape, 1, np.uint8)  # Building on the left ...
+    labels[:, img.shape[1] // 2:] = 8  # ... Car on the right
+    weighted_cfg = dataclasses.replace(preset("weighted"), semantic_source="labels")
+    weighted = FramePreparer(weighted_cfg, vocab).prepare(frame(img, labels=labels))
+    plain = FramePreparer(preset("default"), vocab).prepare(frame(img))
+    assert len(weighted.features) == len(plain.features) and not weighted.mask_fallback
+    np.testing.assert_array_equal(weighted.fvec.nodes, plain.fvec.nodes)
+    assert set(weighted.bow.words.tolist()) == set(plain.bow.words.tolist())
+    right = weighted.features.keypoints[:, 0] >= img.shape[1] // 2
+    words_right = set(vocab.transform(weighted.features.descriptors[right])[0].words.tolist())
+    words_left = set(vocab.transform(weighted.features.descriptors[~right])[0].words.tolist())
+    only_right = np.isin(weighted.bow.words, sorted(words_right - words_left))
+    only_left = np.isin(weighted.bow.words, sorted(words_left - words_right))
+    ratio = weighted.bow.weights / plain.bow.weights
+    assert ratio[only_right].mean() < 0.6 * ratio[only_left].mean()  # cars count less than buildings
+    assert "segment" in weighted.timings
