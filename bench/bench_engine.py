@@ -357,6 +357,8 @@ def median_of_runs(runs: list[dict[str, object]]) -> dict[str, object]:
             out[key] = median_of_runs(values)  # type: ignore[arg-type]
         elif isinstance(first, bool) or not isinstance(first, int | float):
             out[key] = values if "load_average" in key else first
+        elif all(v == first for v in values):
+            out[key] = first  # a count, the same in every run
         else:
             out[key] = round(float(np.median(values)), 4)  # type: ignore[arg-type]
     return out

@@ -31,7 +31,7 @@ from .scoring import Scoring, Weighting
 from .tree import Vocabulary, check_header
 
 COLUMNS = 35  # parent, leaf flag, 32 descriptor bytes, weight
-_CHUNK = 1 << 22  # bytes of text decoded at a time (keeps the temporaries in the cache)
+_CHUNK = 1 << 20  # bytes of text decoded at a time: the temporaries stay in the cache
 _MAX_LINE = 1 << 12  # a node line is under 300 bytes; no line may be longer than this
 _MAX_INT_DIGITS = 10
 _MAX_WEIGHT_CHARS = 64

@@ -128,16 +128,15 @@ class Vocabulary:
         """Whether ``given`` is this tree's (n, w') children table (w' >= w, -1 padded), or an
         empty (n, 0) one (not stored)."""
         given = np.asarray(given)
-        w = self._block_kids.shape[1]
         if given.ndim != 2 or given.shape[0] != self.n_nodes:
             return False
         if given.shape[1] == 0:
             return True
-        inner = ~self.is_leaf
-        return bool(
-            given.shape[1] >= w and np.array_equal(given[inner, :w], self._block_kids)
-            and (given[inner, w:] == -1).all() and (given[self.is_leaf] == -1).all()
-        )
+        if given.shape[1] < self._block_kids.shape[1]:
+            return False
+        expected = np.full(given.shape, -1, np.int32)
+        expected[~self.is_leaf, : self._block_kids.shape[1]] = self._block_kids
+        return bool(np.array_equal(given, expected))
 
     @property
     def children(self) -> np.ndarray:
