@@ -116,3 +116,27 @@ def test_a_none_section_takes_overrides_of_its_defaults() -> None:
     masked = merge(cfg, {"masking": {"mode": "hard", "static_classes": ["Building", "Road"]}})
     assert masked.masking == MaskingConfig(mode="hard", static_classes=frozenset({"Building", "Road"}))
     assert merge(masked, {"masking": None}).masking is None
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"query": {"exclude_recent": "5"}}, r"query\.exclude_recent: expected a whole number \(int\)"),
+        ({"query": {"alpha": "abc"}}, r"query\.alpha: expected a number \(float\), got 'abc'"),
+        ({"query": {"exclude_recent": 5.5}}, r"query\.exclude_recent: expected a whole number"),
+        ({"query": {"use_nss": 1}}, r"query\.use_nss: expected true or false \(bool\), got 1"),
+        ({"semantic_source": "camera"}, r"semantic_source: expected one of 'network', 'labels'"),
+        ({"query": 5}, r"query: expected QueryConfig, got 5"),
+        ({"features": {"n_features": "many"}}, r"features\.n_features: expected a whole number"),
+    ],
+)
+def test_values_are_checked_against_the_field_types(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        preset("default", overrides)
+
+
+def test_ints_for_floats_and_none_for_optionals_are_kept() -> None:
+    cfg = preset("default", {"query": {"alpha": 1, "exclude_recent_s": None}})
+    assert cfg.query.alpha == 1 and type(cfg.query.alpha) is int and cfg.query.exclude_recent_s is None
+    cfg = preset("default", {"query": {"exclude_recent_s": 2.5}})
+    assert cfg.query.exclude_recent_s == 2.5

@@ -266,3 +266,35 @@ def test_bad_inputs() -> None:
     with pytest.raises(InputError):
         loops_from_poses(np.zeros((4, 3)), max_distance=1.0, yaws=np.zeros(4))
     assert loops_from_poses(np.zeros((0, 3)), max_distance=1.0).shape == (0, 0)
+
+
+def test_vprbench_rows_that_numpy_would_expand_or_allocate_are_refused() -> None:
+    nested: list = [1]
+    for _ in range(40):  # 2^40 ids once expanded
+        nested = [nested, nested]
+    for ids in (nested, "abc", [1.5], [2**70]):
+        table = np.empty((1, 2), dtype=object)
+        table[0] = [0, ids]
+        with pytest.raises(DatasetError, match="row 0: expected \\[query id, \\[ref ids\\]\\]"):
+            vprbench_matrix(table)
+    table = np.empty((1, 2), dtype=object)
+    table[0] = [0, [10**9]]  # n_ref taken from the largest id: a 10^9 x 10^9 matrix
+    with pytest.raises(DatasetError, match="a loop matrix of 1000000002 frames is outside the 0..40000"):
+        vprbench_matrix(table)
+
+
+def test_a_matrix_of_only_nan_is_refused(tmp_path: Path) -> None:
+    np.save(tmp_path / "gt.npy", np.full((5, 5), np.nan))
+    with pytest.raises(DatasetError, match=r"gt\.npy: expected a loop matrix of 0/1 values, found only NaN"):
+        load_ground_truth(tmp_path / "gt.npy")
+    some = np.full((5, 5), np.nan)
+    some[3, 1] = 1.0  # NaN cells among loops still count as no loop, as documented
+    np.save(tmp_path / "gt.npy", some)
+    assert np.flatnonzero(load_ground_truth(tmp_path / "gt.npy").matrix).tolist() == [16]
+
+
+def test_loops_from_poses_refuses_a_matrix_past_the_limit() -> None:
+    from stablecues.limits import MAX_LOOP_FRAMES
+
+    with pytest.raises(InputError, match="positions: a loop matrix of"):
+        loops_from_poses(np.zeros((MAX_LOOP_FRAMES + 1, 3)), max_distance=1.0)

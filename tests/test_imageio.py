@@ -121,8 +121,11 @@ def test_missing_empty_and_corrupt_files_name_the_file(tmp_path: Path) -> None:
         read_image(tmp_path / "absent.png")
     assert isinstance(info.value, DatasetError) and isinstance(info.value, InputError)
     (tmp_path / "empty.png").write_bytes(b"")
-    with pytest.raises(ImageError, match=r"empty.png: not a readable image \(corrupt or unknown format\)"):
+    with pytest.raises(ImageError, match=r"empty.png: not a readable image \(the file is empty\)"):
         read_image(tmp_path / "empty.png", "unchanged")
+    (tmp_path / "a.gif").write_bytes(b"GIF89a" + b"\0" * 20)
+    with pytest.raises(ImageError, match=r"a.gif: not a readable image \(expected a PNG, JPEG, BMP"):
+        read_image(tmp_path / "a.gif")
     (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
     with pytest.raises(ImageError, match="corrupt.png: not a readable image"):
         read_image(tmp_path / "corrupt.png", "8bit")
@@ -133,6 +136,26 @@ def test_missing_empty_and_corrupt_files_name_the_file(tmp_path: Path) -> None:
         read_depth(tmp_path / "absent.png", 1000.0)
     with pytest.raises(ImageError, match="corrupt.png: not a readable image"):
         read_labels(tmp_path / "corrupt.png")
+
+
+def test_what_the_codecs_print_goes_into_the_error(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    ok, buf = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
+    data = bytearray(buf.tobytes())
+    data[41:45] = b"\xff\xff\xff\xff"  # the IDAT payload: libpng complains on stderr
+    (tmp_path / "bad.png").write_bytes(bytes(data))
+    with pytest.raises(ImageError, match=r"bad\.png: not a readable image \(a corrupt PNG file"):
+        read_image(tmp_path / "bad.png")
+    assert capfd.readouterr().err == ""  # nothing reached the terminal
+
+
+def test_a_png_chunk_longer_than_the_file_is_refused(tmp_path: Path) -> None:
+    """An 84-byte PNG whose IDAT declares 3.5 GB made OpenCV allocate them."""
+    ok, buf = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
+    data = bytearray(buf.tobytes())
+    data[33] = 0xD5  # the IDAT chunk's length, high byte
+    (tmp_path / "a.png").write_bytes(bytes(data))
+    with pytest.raises(ImageError, match=r"a\.png: not a readable image \(a damaged PNG header\)"):
+        read_image(tmp_path / "a.png")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -241,3 +264,29 @@ def test_match_by_stem(tmp_path: Path) -> None:
     with pytest.raises(ImageError, match=r"right: expected a right image named 2\.\*, found none"):
         match_by_stem(left, right, "right")
     assert match_by_stem([], right, "right") == []
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".ppm", ".pgm", ".tif", ".webp"])
+def test_header_size_of_every_format(ext: str) -> None:
+    from stablecues.imageio import header_size
+
+    image = np.zeros((37, 53), np.uint8) if ext == ".pgm" else np.zeros((37, 53, 3), np.uint8)
+    ok, buf = cv2.imencode(ext, image)
+    assert ok and header_size(buf.tobytes()) == (53, 37)
+    assert header_size(b"not an image") is None and header_size(b"\x89PNG\r\n\x1a\n") is None
+
+
+def test_an_image_too_large_is_refused_before_it_is_decoded(tmp_path: Path) -> None:
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", 65535, 65535, 8, 0, 0, 0, 0)  # the header claims 4.3 Gpx
+    (tmp_path / "big.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
+    with pytest.raises(ImageError, match=r"big\.png: a 65535 x 65535 image is larger than the 67108864"):
+        read_image(tmp_path / "big.png")
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 30), np.uint8))
+    with pytest.raises(ImageError, match=r"small\.png: a 30 x 20 image is larger than the 100 pixels"):
+        read_image(tmp_path / "small.png", max_pixels=100)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
+import types
 import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
@@ -42,42 +44,56 @@ def merge(config: T, overrides: Mapping[str, Any] | None = None) -> T:
     :func:`select_by` switches class when the mapping names another one. Lists are turned back
     into the tuple or frozenset a field holds, and plain values into its enum, so that
     ``merge(type(c)(), to_dict(c)) == c``. Unknown keys raise :class:`ConfigError` naming the
-    key and the known ones, so typos never pass silently.
+    key and the known ones, so typos never pass silently; so does a value that is not of the
+    field's declared type (``"5"`` for an ``int``, ``"abc"`` for a ``float``; an ``int`` is
+    accepted for a ``float``).
     """
+    return _merge(config, overrides, "")
+
+
+def _merge(config: T, overrides: Mapping[str, Any] | None, where: str) -> T:
     if not overrides:
         return config
     if not dataclasses.is_dataclass(config) or isinstance(config, type):
         raise TypeError("merge() expects a dataclass instance")
+    if not isinstance(overrides, Mapping):
+        name = where or type(config).__name__
+        raise ConfigError(f"{name}: expected a mapping of settings, got {overrides!r:.30}")
     fields = {f.name: f for f in dataclasses.fields(config)}
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
         if key not in fields:
             known = ", ".join(sorted(fields))
             raise ConfigError(f"unknown setting {key!r} for {type(config).__name__}; known: {known}")
-        changes[key] = _merged_value(config, fields[key], value)
+        changes[key] = _merged_value(config, fields[key], value, f"{where}{key}")
     return dataclasses.replace(config, **changes)  # type: ignore[type-var,unused-ignore]
 
 
-def _merged_value(config: object, f: dataclasses.Field, value: Any) -> Any:
+def _merged_value(config: object, f: dataclasses.Field, value: Any, where: str) -> Any:
     """The new value of field ``f`` of ``config`` given an override ``value``."""
     current = getattr(config, f.name)
     if not isinstance(value, Mapping):
-        return _coerce(current, value)
+        out = _coerce(current, value, where)
+        _check_type(type(config), f.name, out, where)
+        return out
     select = f.metadata.get(_SELECT)
     if select is not None:
         key, resolve = select
+        if key in value and not isinstance(value[key], str):
+            raise ConfigError(f"{where}.{key}: expected a name (text), got {value[key]!r:.40}")
         if key in value and (current is None or getattr(current, key, None) != value[key]):
-            return merge(resolve(value[key])(), value)
+            return _merge(resolve(value[key])(), value, where + ".")
     if dataclasses.is_dataclass(current) and not isinstance(current, type):
-        return merge(current, value)
+        return _merge(current, value, where + ".")
     if current is None:
         cls = _optional_dataclass(type(config), f.name)
         if cls is not None:
-            return merge(cls(), value)
+            return _merge(cls(), value, where + ".")
+    _check_type(type(config), f.name, value, where)
     return value
 
 
-def _coerce(current: Any, value: Any) -> Any:
+def _coerce(current: Any, value: Any, where: str = "") -> Any:
     """``value`` in the form of the field's ``current`` value: a JSON list back into a tuple or
     frozenset, a plain value into the enum."""
     if isinstance(current, tuple | frozenset | set) and isinstance(value, list | tuple | set | frozenset):
@@ -85,10 +101,73 @@ def _coerce(current: Any, value: Any) -> Any:
     if isinstance(current, enum.Enum) and not isinstance(value, enum.Enum):
         try:
             return type(current)(value)
-        except ValueError:
+        except (ValueError, TypeError):
             known = ", ".join(repr(m.value) for m in type(current))
-            raise ConfigError(f"{value!r}: expected one of {known}") from None
+            raise ConfigError(f"{where + ': ' if where else ''}{value!r}: expected one of {known}") from None
     return value
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    try:
+        return typing.get_type_hints(cls)
+    except (NameError, TypeError):  # unresolvable annotations: values are not checked
+        return {}
+
+
+def _check_type(cls: type, name: str, value: Any, where: str) -> None:
+    """Raise unless ``value`` fits the annotation of field ``name`` of dataclass ``cls``.
+
+    Raises:
+        ConfigError: naming the setting, the expected type and the value found.
+    """
+    hint = _hints(cls).get(name)
+    if hint is None or _fits(value, hint):
+        return
+    raise ConfigError(f"{where}: expected {_type_name(hint)}, got {value!r:.60} ({type(value).__name__})")
+
+
+def _fits(value: Any, hint: Any) -> bool:  # noqa: PLR0911 - one return per kind of annotation
+    """Whether ``value`` is of type ``hint`` (int, float, bool, str, Path, unions, Literal,
+    enums, dataclasses, tuple / frozenset / list / dict of those; anything else passes)."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if hint is Any or isinstance(hint, typing.TypeVar):
+        return True
+    if origin is typing.Union or isinstance(hint, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if origin is typing.Literal:
+        return any(value == a and type(value) is type(a) for a in args)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if origin in (tuple, frozenset, set, list):
+        if not isinstance(value, origin):
+            return False
+        inner = [a for a in args if a is not Ellipsis]
+        return len(inner) != 1 or all(_fits(v, inner[0]) for v in value)
+    if origin is dict:
+        return isinstance(value, dict)
+    if isinstance(hint, type):
+        return isinstance(value, hint)
+    return True
+
+
+def _type_name(hint: Any) -> str:
+    names = {int: "a whole number (int)", float: "a number (float)", bool: "true or false (bool)",
+             str: "text (str)", type(None): "null"}  # fmt: skip
+    if hint in names:
+        return names[hint]
+    if typing.get_origin(hint) is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(hint))
+    if typing.get_origin(hint) is typing.Union or isinstance(hint, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(hint))
+    return getattr(hint, "__name__", str(hint))
 
 
 def _optional_dataclass(cls: type, name: str) -> type | None:

@@ -47,6 +47,11 @@ class ModelError(StableCuesError):
     """A network weights file that is missing or unreadable."""
 
 
+class MissingDependencyError(StableCuesError, ImportError):
+    """An optional dependency that a chosen feature needs is not installed; the message says
+    how to install it. An :class:`ImportError` too, so code catching that keeps working."""
+
+
 def check_array(
     name: str,
     array: object,
@@ -79,3 +84,10 @@ def check_array(
             raise InputError(f"{name}: expected shape {want_s}, got {array.shape}")
     elif ndim is not None and array.ndim != ndim:
         raise InputError(f"{name}: expected {ndim} dimensions, got shape {array.shape}")
+
+
+def reason(exc: BaseException) -> str:
+    """A third-party exception as a short phrase for a one-line message: its type and the first
+    line of its text (at most 120 characters)."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0][:120]}" if text else type(exc).__name__

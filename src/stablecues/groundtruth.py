@@ -6,14 +6,20 @@ so the matrix is strictly lower-triangular. It is saved as ``.npy``.
 
 Files read by :func:`load_ground_truth`:
 
-* ``.mat`` (MATLAB v5, via ``scipy.io.loadmat``): the variable is found automatically (the only
+* ``.mat`` (MATLAB v5 through :mod:`stablecues.matfile`, v4 through ``scipy.io.loadmat``):
+  the variable is found automatically (the only
   2-D numeric array, else the largest) or named with ``variable=``. Nonzero cells are loops.
   Files stored upper-triangular (``j > i``) are transposed; symmetric ones keep their lower
   half; the diagonal (a frame with itself) is dropped. MATLAB v7.3 (HDF5) files are read with
   ``h5py`` when it is installed (none of the classic benchmark files is v7.3).
 * ``.npy`` / ``.npz``: a 2-D numeric or bool matrix, oriented the same way; or the VPR-Bench
   object array ``ground_truth_new.npy`` (rows ``[query i, [ref ids]]``), mapped to the combined
-  sequence "all reference images, then all queries" (query ``i`` is frame ``n_ref + i``).
+  sequence "all reference images, then all queries" (query ``i`` is frame ``n_ref + i``). That
+  file is a pickle: it is read by a restricted unpickler that builds numpy arrays, lists and
+  integers only (:func:`stablecues.fileio.read_npy`), never by ``allow_pickle=True``.
+
+Every reader sizes what it allocates from the file's bytes and the limits of
+:mod:`stablecues.limits` (at most ``MAX_LOOP_FRAMES`` frames); an all-NaN matrix is refused.
 * images (``.png``, ``.bmp``, ``.pgm``, ``.tif``): N x N, nonzero pixel = loop.
 
 Interleaved two-camera releases (FAB-MAP New College and City Centre: image 1 left, image 2
@@ -27,7 +33,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import zipfile
+import math
+import struct
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,8 +43,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .errors import DatasetError, InputError, check_array
+from .errors import DatasetError, InputError, check_array, reason
+from .fileio import read_npy, read_npz
 from .imageio import list_images, read_image
+from .limits import MAX_GT_IMAGE_PIXELS, MAX_LOOP_FRAMES, check_loop_frames
+from .matfile import is_mat5, read_mat5
 
 logger = logging.getLogger(__name__)
 
@@ -154,6 +165,7 @@ def orient(
     if len(shape) != 2 or shape[0] != shape[1]:
         raise DatasetError(f"{source}: expected a square N x N loop matrix, found shape {shape}")
     n = int(shape[0])
+    check_loop_frames(n, source)
     if hasattr(matrix, "tocoo"):  # scipy.sparse
         coo = matrix.tocoo()
         keep = coo.data != 0
@@ -163,6 +175,8 @@ def orient(
         if arr.dtype.kind not in "biuf":
             raise DatasetError(f"{source}: expected a numeric loop matrix, found dtype {arr.dtype}")
         rows, cols = _nonzero_indices(arr)
+        if rows.size == 0 and arr.dtype.kind == "f" and arr.size and _all_nan(arr):
+            raise DatasetError(f"{source}: expected a loop matrix of 0/1 values, found only NaN")
     notes: dict[str, Any] = {}
     diag = rows == cols
     if diag.any():
@@ -193,6 +207,11 @@ def orient(
     out = np.zeros((n, n), dtype=bool)
     out[rows[lower], cols[lower]] = True
     return out, transposed, notes
+
+
+def _all_nan(arr: np.ndarray) -> bool:
+    """True when every cell of a float matrix is NaN (checked a block of rows at a time)."""
+    return all(np.isnan(arr[k : k + _ROW_BLOCK]).all() for k in range(0, arr.shape[0], _ROW_BLOCK))
 
 
 def _nonzero_indices(arr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -321,11 +340,14 @@ def vprbench_matrix(
     refs: list[np.ndarray] = []
     queries: list[int] = []
     for k, (q, ids) in enumerate(table):
-        try:
-            queries.append(int(q))
-            refs.append(np.atleast_1d(np.asarray(ids, dtype=np.int64)))
-        except (TypeError, ValueError):
-            raise DatasetError(f"{source}: row {k} is not [query id, [ref ids]]: {table[k]!r:.80}") from None
+        row = _table_ids(ids)
+        if row is None or not _is_int(q):
+            raise DatasetError(
+                f"{source}: row {k}: expected [query id, [ref ids]] (a whole number and a flat list of "
+                f"whole numbers), found [{type(q).__name__}, {type(ids).__name__}]"
+            )
+        queries.append(int(q))
+        refs.append(row)
     nq = len(queries)
     if sorted(queries) != list(range(nq)):
         raise DatasetError(f"{source}: expected query ids 0..{nq - 1}, found {queries[:5]}...")
@@ -335,6 +357,7 @@ def vprbench_matrix(
     if largest >= n_ref:
         raise DatasetError(f"{source}: reference id {largest} out of range for {n_ref} reference images")
     n = n_ref + nq
+    check_loop_frames(n, source)
     gt = np.zeros((n, n), dtype=bool)
     for q, r in zip(queries, refs, strict=True):
         r = r[r >= 0]
@@ -342,6 +365,29 @@ def vprbench_matrix(
     mask = np.zeros(n, dtype=bool)
     mask[n_ref:] = True
     return gt, mask
+
+
+def _is_int(value: object) -> bool:
+    """A whole number that fits an int64 (not a bool)."""
+    return (
+        isinstance(value, int | np.integer)
+        and not isinstance(value, bool | np.bool_)
+        and -(2**63) <= int(value) < 2**63
+    )
+
+
+def _table_ids(ids: object) -> np.ndarray | None:
+    """(K,) int64 reference ids of a VPR-Bench row: an int, a flat list of ints or a 1-D int
+    array; None for anything else (nested lists are refused before numpy could expand them)."""
+    if _is_int(ids):
+        return np.array([int(ids)], dtype=np.int64)  # type: ignore[call-overload]
+    if isinstance(ids, np.ndarray):
+        if ids.ndim > 1 or ids.dtype.kind not in "iu":
+            return None
+        return np.atleast_1d(ids.astype(np.int64))
+    if isinstance(ids, list | tuple) and all(_is_int(v) for v in ids):
+        return np.asarray([int(v) for v in ids], dtype=np.int64)
+    return None
 
 
 def load_ground_truth(
@@ -409,11 +455,14 @@ def _pick(arrays: Mapping[str, Any], source: Path, variable: str | None) -> tupl
     if variable is not None:
         if variable not in arrays:
             raise DatasetError(f"{source}: no variable {variable!r}; found {sorted(arrays)}")
+        if arrays[variable] is None:
+            raise DatasetError(f"{source}: variable {variable!r} is not a numeric matrix")
         return arrays[variable], variable
     cands = {
         k: v
         for k, v in arrays.items()
         if not k.startswith("__")
+        and v is not None
         and len(getattr(v, "shape", ())) == 2
         and (hasattr(v, "tocoo") or np.asarray(v).dtype.kind in "biuf")
     }
@@ -425,15 +474,42 @@ def _pick(arrays: Mapping[str, Any], source: Path, variable: str | None) -> tupl
     return cands[name], name
 
 
+_MAT_ERRORS = (
+    ValueError, TypeError, OSError, IndexError, KeyError, EOFError, AttributeError, OverflowError,
+    UnicodeDecodeError, RecursionError, zlib.error, struct.error,
+)  # fmt: skip
+
+
 def _read_mat(path: Path, variable: str | None) -> tuple[Any, str]:
+    """A MATLAB file's loop matrix: v5 (v6, v7) through :mod:`stablecues.matfile`, never
+    SciPy's compiled reader (which a crafted file can crash); v4 through SciPy's pure-Python
+    reader; v7.3 (HDF5) through h5py."""
+    with path.open("rb") as fh:
+        head = fh.read(128)
+    if len(head) == 128 and head[126:128] in (b"IM", b"MI") and 2 in head[124:126]:
+        return _read_mat73(path, variable)
+    if is_mat5(head):
+        arrays = read_mat5(path, max_elements=MAX_LOOP_FRAMES**2)
+        return _pick(arrays, path, variable)
+    if len(head) < 4 or 0 not in head[:4]:  # SciPy takes a file for v4 when its first 4 bytes hold a 0
+        raise DatasetError(f"{path}: not a MATLAB file (no v4, v5 or v7.3 header)")
+    return _read_mat4(path, variable)
+
+
+def _read_mat4(path: Path, variable: str | None) -> tuple[Any, str]:
     import scipy.io
 
     try:
+        infos = scipy.io.whosmat(str(path))
+        for name, shape, _ in infos:
+            if math.prod(shape) > MAX_LOOP_FRAMES**2:
+                raise DatasetError(
+                    f"{path}: variable {name!r} of shape {shape} is larger than the "
+                    f"{MAX_LOOP_FRAMES} x {MAX_LOOP_FRAMES} accepted (stablecues.limits)"
+                )
         data = scipy.io.loadmat(str(path))
-    except NotImplementedError:  # MATLAB v7.3 = HDF5
-        return _read_mat73(path, variable)
-    except (ValueError, TypeError, OSError, scipy.io.matlab.MatReadError) as exc:
-        raise DatasetError(f"{path}: not a readable MATLAB file ({str(exc).splitlines()[0]})") from None
+    except (*_MAT_ERRORS, scipy.io.matlab.MatReadError, NotImplementedError) as exc:
+        raise DatasetError(f"{path}: not a readable MATLAB file ({reason(exc)})") from None
     return _pick(data, path, variable)
 
 
@@ -444,40 +520,38 @@ def _read_mat73(path: Path, variable: str | None) -> tuple[Any, str]:
         raise DatasetError(
             f"{path}: a MATLAB v7.3 (HDF5) file; install h5py to read it (pip install h5py)"
         ) from None
-    with h5py.File(path, "r") as fh:
-        # MATLAB stores column-major: the HDF5 dataset is the transpose of the MATLAB matrix
-        arrays = {k: np.asarray(v[()]).T for k, v in fh.items() if isinstance(v, h5py.Dataset)}
+    try:
+        with h5py.File(path, "r") as fh:
+            datasets = {
+                k if isinstance(k, str) else bytes(k).decode("utf-8", errors="replace"): v
+                for k, v in fh.items()
+                if isinstance(v, h5py.Dataset)
+            }
+            # numeric datasets within the limits only (a larger one could not be a loop matrix);
+            # MATLAB stores column-major: the HDF5 dataset is the transpose of the MATLAB matrix
+            arrays = {
+                k: np.asarray(v[()]).T
+                for k, v in datasets.items()
+                if v.dtype.kind in "biuf" and math.prod(v.shape or ()) <= MAX_LOOP_FRAMES**2
+            }
+    except (OSError, RuntimeError, *_MAT_ERRORS) as exc:  # h5py raises RuntimeError too
+        raise DatasetError(f"{path}: not a readable MATLAB v7.3 (HDF5) file ({reason(exc)})") from None
     return _pick(arrays, path, variable)
 
 
 def _read_npy(path: Path) -> np.ndarray:
-    """A .npy array; object arrays (the VPR-Bench table) only unpickled when the header says
-    object dtype, so a corrupt or foreign file never runs pickle."""
-    import pickle
-
-    try:
-        with open(path, "rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                _, _, dtype = np.lib.format.read_array_header_1_0(fh)
-            else:
-                _, _, dtype = np.lib.format.read_array_header_2_0(fh)
-        return np.load(path, allow_pickle=dtype == np.dtype(object))
-    except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
-        raise DatasetError(f"{path}: not a readable .npy file ({str(exc).splitlines()[0]})") from None
+    """A .npy array, never unpickling arbitrary objects: an object array (the VPR-Bench table)
+    goes through the restricted unpickler of :func:`stablecues.fileio.read_npy`."""
+    return read_npy(path, "ground truth", objects=True)
 
 
 def _read_npz(path: Path, variable: str | None) -> tuple[Any, str]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-        raise DatasetError(f"{path}: not a readable .npz file ({str(exc).splitlines()[0]})") from None
+    arrays = read_npz(path, "ground truth", max_bytes=8 * MAX_LOOP_FRAMES**2)
     return _pick(arrays, path, variable)
 
 
 def _read_image(path: Path) -> np.ndarray:
-    image = read_image(path, "unchanged")
+    image = read_image(path, "unchanged", max_pixels=MAX_GT_IMAGE_PIXELS)
     # colour images: any colour channel set (an alpha channel is not a loop)
     return np.asarray(image[..., :3].any(axis=2)) if image.ndim == 3 else np.asarray(image)
 
@@ -589,14 +663,17 @@ def loops_from_poses(
         check_array("times", time_arr, shape=(n,))
         valid &= np.isfinite(time_arr)
 
+    check_loop_frames(n, "positions", InputError)
     gt = np.zeros((n, n), dtype=bool)
     if n == 0:
         return gt
     pos = np.where(valid[:, None], pos, 0.0)
     cols = np.arange(n)
     limit2 = float(max_distance) ** 2
-    for start in range(0, n, _ROW_BLOCK):
-        stop = min(start + _ROW_BLOCK, n)
+    # rows per block: 512, fewer for long trajectories (a block's temporaries stay near 100 MB)
+    step = max(1, min(_ROW_BLOCK, (1 << 22) // n))
+    for start in range(0, n, step):
+        stop = min(start + step, n)
         rows = np.arange(start, stop)
         diff = pos[start:stop, None, :] - pos[None, :stop, :]
         block = np.einsum("ijk,ijk->ij", diff, diff) <= limit2

@@ -6,7 +6,10 @@ undecodable file raises :class:`~stablecues.errors.ImageError` naming the file.
 
 from __future__ import annotations
 
+import logging
 import re
+import struct
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -15,10 +18,16 @@ import cv2
 import numpy as np
 
 from .errors import ImageError, InputError
+from .fileio import captured_stderr
+from .limits import MAX_IMAGE_PIXELS
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "IMAGE_SUFFIXES",
     "ImageMode",
+    "header_size",
+    "image_format",
     "is_image_file",
     "list_images",
     "match_by_stem",
@@ -53,19 +62,28 @@ _FLAGS = {
 }
 
 
-def read_image(path: str | Path, mode: ImageMode = "bgr") -> np.ndarray:
-    """Read an image file.
+def read_image(
+    path: str | Path, mode: ImageMode = "bgr", *, max_pixels: int = MAX_IMAGE_PIXELS
+) -> np.ndarray:
+    """Read an image file: PNG, JPEG, BMP, PNM (PBM, PGM, PPM), TIFF or WebP.
+
+    The format is told from the file's first bytes and its size read from its header before
+    anything is decoded: a damaged header, or an image of more than ``max_pixels`` pixels, is
+    refused with one error naming the file (a decoder would allocate what the header claims).
+    What the codec libraries print while decoding goes into the error (or, for a file that
+    still decodes, into a logged warning), not onto the terminal.
 
     Args:
-        path: image file (PNG, JPEG, BMP, PGM, TIFF, ...).
+        path: image file.
         mode: the form of the result, see :data:`ImageMode`.
+        max_pixels: the largest width x height accepted (:data:`stablecues.limits.MAX_IMAGE_PIXELS`).
 
     Returns:
         (H, W) or (H, W, C) array, uint8 unless ``unchanged`` keeps a 16-bit or float file.
 
     Raises:
-        ImageError: the file is missing, empty or not a decodable image, or (``8bit``) holds
-            neither 8- nor 16-bit pixels.
+        ImageError: the file is missing, empty, of another format, larger than ``max_pixels``
+            or not decodable, or (``8bit``) holds neither 8- nor 16-bit pixels.
         InputError: an unknown mode.
     """
     flags = _FLAGS.get(mode)
@@ -75,14 +93,191 @@ def read_image(path: str | Path, mode: ImageMode = "bgr") -> np.ndarray:
     if not p.is_file():
         raise ImageError(f"{p}: image file not found")
     data = np.fromfile(str(p), dtype=np.uint8)
-    image = cv2.imdecode(data, flags) if data.size else None
-    if image is None:
-        raise ImageError(f"{p}: not a readable image (corrupt or unknown format)")
+    if not data.size:
+        raise ImageError(f"{p}: not a readable image (the file is empty)")
+    buf = data.tobytes()
+    kind = image_format(buf)
+    if kind is None:
+        raise ImageError(f"{p}: not a readable image (expected a PNG, JPEG, BMP, PNM, TIFF or WebP file)")
+    size = header_size(buf)
+    if size is None:
+        raise ImageError(f"{p}: not a readable image (a damaged {kind} header)")
+    _check_pixels(p, size, max_pixels)
+    image = _decode(data, flags, p, kind)
+    _check_pixels(p, (image.shape[1], image.shape[0]), max_pixels)
     if mode == "rgb":
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     if mode in ("8bit", "8bit-grey"):
         return _as_8bit(image, p, grey=mode == "8bit-grey")
     return image
+
+
+def _decode(data: np.ndarray, flags: int, path: Path, kind: str) -> np.ndarray:
+    """``cv2.imdecode``, what the codec prints turned into the error or a logged warning."""
+    with captured_stderr() as printed:
+        try:
+            image = cv2.imdecode(data, flags)
+            failure = ""
+        except cv2.error as exc:
+            image, failure = None, str(exc).strip().splitlines()[-1]
+    messages = [failure] if failure else []
+    messages += printed.lines
+    if image is None:
+        why = f"; {messages[0][:120]}" if messages else ""
+        raise ImageError(f"{path}: not a readable image (a corrupt {kind} file{why})")
+    if messages:
+        logger.warning("%s: %s", path, messages[0][:200])
+    return image
+
+
+def _check_pixels(path: Path, size: tuple[int, int], max_pixels: int) -> None:
+    width, height = size
+    if width * height > max_pixels:
+        raise ImageError(
+            f"{path}: a {width} x {height} image is larger than the {max_pixels} pixels accepted "
+            "(stablecues.limits)"
+        )
+
+
+_MAGIC = (
+    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"BM", "BMP"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+)
+
+
+def image_format(data: bytes) -> str | None:
+    """The format a file's first bytes announce: "PNG", "JPEG", "BMP", "PNM", "TIFF", "WebP",
+    or None for anything else."""
+    for magic, name in _MAGIC:
+        if data.startswith(magic):
+            return name
+    if len(data) >= 3 and data[0:1] == b"P" and data[1:2] in (b"1", b"2", b"3", b"4", b"5", b"6"):
+        return "PNM"
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "WebP"
+    return None
+
+
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the header of a PNG, JPEG, BMP, PNM, TIFF or WebP file, without
+    decoding it; None for another format or a damaged header (a PNG's IHDR is checked field by
+    field and against its CRC). Give the whole file: a JPEG's size may follow 64 kB of
+    metadata, a TIFF's directory may sit at its end."""
+    sniffers = {"PNG": _png_size, "JPEG": _jpeg_size, "BMP": _bmp_size, "PNM": _pnm_size,
+                "TIFF": _tiff_size, "WebP": _webp_size}  # fmt: skip
+    sniff = sniffers.get(image_format(data) or "")
+    if sniff is None:
+        return None
+    try:
+        size = sniff(data)
+    except (IndexError, ValueError, struct.error):
+        return None
+    if size is None or size[0] <= 0 or size[1] <= 0:
+        return None
+    return int(size[0]), int(size[1])
+
+
+# bit depths each PNG colour type allows
+_PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+
+
+def _png_size(b: bytes) -> tuple[int, int] | None:
+    if b[12:16] != b"IHDR" or struct.unpack(">I", b[8:12])[0] != 13:
+        return None
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", b[16:29])
+    if struct.unpack(">I", b[29:33])[0] != zlib.crc32(b[12:29]):
+        return None
+    if depth not in _PNG_DEPTHS.get(colour, ()) or compression or filtering or interlace not in (0, 1):
+        return None
+    if not _png_chunks_fit(b):
+        return None
+    return (width, height) if width < 2**31 and height < 2**31 else None
+
+
+def _png_chunks_fit(b: bytes) -> bool:
+    """Whether every chunk up to IEND lies within the file (a decoder allocates a chunk's
+    declared length before reading it)."""
+    at = 8
+    while at + 8 <= len(b):
+        (length,) = struct.unpack(">I", b[at : at + 4])
+        if length >= 2**31 or at + 12 + length > len(b):
+            return False
+        if b[at + 4 : at + 8] == b"IEND":
+            return True
+        at += 12 + length
+    return at == len(b)
+
+
+def _jpeg_size(b: bytes) -> tuple[int, int] | None:
+    if not b.startswith(b"\xff\xd8"):
+        return None
+    i = 2
+    while i + 9 < len(b):
+        if b[i] != 0xFF:
+            return None
+        marker = b[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            height, width = struct.unpack(">HH", b[i + 5 : i + 9])
+            return width, height
+        if marker in (0x01, *range(0xD0, 0xDA)):
+            i += 2
+            continue
+        i += 2 + struct.unpack(">H", b[i + 2 : i + 4])[0]
+    return None
+
+
+def _bmp_size(b: bytes) -> tuple[int, int] | None:
+    if not b.startswith(b"BM") or len(b) < 26:
+        return None
+    if struct.unpack("<I", b[14:18])[0] == 12:  # BITMAPCOREHEADER
+        return struct.unpack("<HH", b[18:22])
+    width, height = struct.unpack("<ii", b[18:26])
+    return abs(width), abs(height)
+
+
+def _pnm_size(b: bytes) -> tuple[int, int] | None:
+    if len(b) < 3 or b[0:1] != b"P" or b[1:2] not in b"123456" or not b[2:3].isspace():
+        return None
+    text = re.sub(rb"#[^\n]*", b" ", b[2:512])
+    parts = text.split()
+    return (int(parts[0]), int(parts[1])) if len(parts) >= 2 else None
+
+
+def _tiff_size(b: bytes) -> tuple[int, int] | None:
+    if b[:4] not in (b"II*\x00", b"MM\x00*"):
+        return None
+    e = "<" if b[:2] == b"II" else ">"
+    ifd = struct.unpack(e + "I", b[4:8])[0]
+    count = struct.unpack(e + "H", b[ifd : ifd + 2])[0]
+    found: dict[int, int] = {}
+    for k in range(count):
+        at = ifd + 2 + 12 * k
+        tag, kind = struct.unpack(e + "HH", b[at : at + 4])
+        if tag in (256, 257):
+            fmt = e + ("H" if kind == 3 else "I")
+            found[tag] = struct.unpack(fmt, b[at + 8 : at + 8 + struct.calcsize(fmt)])[0]
+    return (found[256], found[257]) if len(found) == 2 else None
+
+
+def _webp_size(b: bytes) -> tuple[int, int] | None:
+    if b[:4] != b"RIFF" or b[8:12] != b"WEBP":
+        return None
+    chunk = b[12:16]
+    if chunk == b"VP8X":
+        return 1 + int.from_bytes(b[24:27], "little"), 1 + int.from_bytes(b[27:30], "little")
+    if chunk == b"VP8L":
+        bits = int.from_bytes(b[21:25], "little")
+        return 1 + (bits & 0x3FFF), 1 + ((bits >> 14) & 0x3FFF)
+    if chunk == b"VP8 ":
+        width, height = struct.unpack("<HH", b[26:30])
+        return width & 0x3FFF, height & 0x3FFF
+    return None
 
 
 def _as_8bit(raw: np.ndarray, path: Path, *, grey: bool) -> np.ndarray:

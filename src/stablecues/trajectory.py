@@ -20,11 +20,13 @@ and the line on a malformed file.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DatasetError, InputError, check_array
+from .fileio import read_text
 from .geometry.rotations import matrix_to_quat, quat_to_matrix, wxyz_to_xyzw, xyzw_to_wxyz
 
 __all__ = [
@@ -35,6 +37,7 @@ __all__ = [
     "read_euroc",
     "read_kitti",
     "read_number_rows",
+    "read_poses",
     "read_times",
     "read_tum",
     "write_euroc",
@@ -57,7 +60,8 @@ def read_number_rows(path: str | Path, columns: int | tuple[int, ...], what: str
         (M, C) float64 array.
 
     Raises:
-        DatasetError: missing file, a non-numeric value, or a line of the wrong length.
+        DatasetError: missing file, a file over :data:`stablecues.limits.MAX_TEXT_BYTES` or
+            holding binary data, a non-numeric value, or a line of the wrong length.
     """
     path = Path(path)
     if not path.is_file():
@@ -65,22 +69,22 @@ def read_number_rows(path: str | Path, columns: int | tuple[int, ...], what: str
     allowed = (columns,) if isinstance(columns, int) else columns
     rows: list[list[float]] = []
     width: int | None = None
-    with path.open("r", encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            text = line.strip()
-            if not text or text.startswith(("#", "%")):
-                continue
-            parts = text.replace(",", " ").split()
-            if len(parts) not in allowed or (width is not None and len(parts) != width):
-                want = " or ".join(str(c) for c in allowed) if width is None else str(width)
-                raise DatasetError(
-                    f"{path}: {what} needs {want} numbers per line, line {lineno} has {len(parts)}"
-                )
-            width = len(parts)
-            try:
-                rows.append([float(p) for p in parts])
-            except ValueError:
-                raise DatasetError(f"{path}: {what} line {lineno} is not numeric: {text[:60]!r}") from None
+    # universal newlines, as reading the file line by line does
+    for lineno, line in enumerate(io.StringIO(read_text(path, what), newline=None), 1):
+        text = line.strip()
+        if not text or text.startswith(("#", "%")):
+            continue
+        parts = text.replace(",", " ").split()
+        if len(parts) not in allowed or (width is not None and len(parts) != width):
+            want = " or ".join(str(c) for c in allowed) if width is None else str(width)
+            raise DatasetError(
+                f"{path}: {what} needs {want} numbers per line, line {lineno} has {len(parts)}"
+            )
+        width = len(parts)
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError:
+            raise DatasetError(f"{path}: {what} line {lineno} is not numeric: {text[:60]!r}") from None
     if not rows:
         return np.zeros((0, allowed[0]), dtype=np.float64)
     return np.asarray(rows, dtype=np.float64)
@@ -186,6 +190,27 @@ def write_kitti(path: str | Path, poses: np.ndarray) -> None:
     """Write (M, 4, 4) poses as a KITTI pose file (the top 3x4 of each, row-major)."""
     poses = _check_poses(poses)
     _write_lines(path, [" ".join(f"{v:.9e}" for v in p[:3].ravel()) for p in poses], ())
+
+
+def read_poses(path: str | Path) -> tuple[np.ndarray | None, np.ndarray]:
+    """Read a TUM (8 numbers a line) or KITTI (12 numbers a line) pose file, whichever it is.
+
+    Returns:
+        ((M,) float64 seconds, or None for KITTI poses, which carry no times; (M, 4, 4) float64
+        poses).
+
+    Raises:
+        DatasetError: as :func:`read_tum` and :func:`read_kitti`, or lines of another length.
+    """
+    rows = read_number_rows(path, (8, 12), "poses (TUM: t x y z qx qy qz qw, or KITTI: 3x4 row-major)")
+    if rows.shape[1] == 12 and rows.shape[0]:
+        poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
+        poses[:, :3, :] = rows.reshape(-1, 3, 4)
+        return None, poses
+    try:
+        return poses_from_tum_rows(rows)
+    except InputError as exc:
+        raise DatasetError(f"{path}: TUM trajectory: {exc}") from None
 
 
 # ----------------------------------------------------------------------------------------------

@@ -62,3 +62,36 @@ def test_evaluate_run(tmp_path: Path) -> None:
         evaluate_run(run, GroundTruth(np.zeros((4, 4), bool)))
     assert eval_file_name("exact", 0) == "eval_exact.json"
     assert eval_file_name("ibow", 2) == "eval_ibow_2.json"
+
+
+def test_a_ground_truth_of_another_size_than_the_dataset_is_refused(tmp_path: Path) -> None:
+    w = RunWriter(tmp_path / "run", {}, {"dataset_frames": 6}, stages=["total"])
+    for i in range(6):
+        w.add(i, float(i), "x", -1, math.nan, math.nan, False, {"total": 1.0})
+    w.close()
+    run = load_run(tmp_path / "run")
+    with pytest.raises(DatasetError, match="covers 40 frames, but the run's dataset has 6"):
+        evaluate_run(run, GroundTruth(np.zeros((40, 40), bool)))
+    ev, _ = evaluate_run(run, GroundTruth(np.zeros((6, 6), bool)))
+    assert ev.queries == 6
+
+
+def test_detections_outside_the_queries_are_counted(tmp_path: Path) -> None:
+    from stablecues.evaluation.metrics import evaluate_detections
+
+    gt = np.zeros((6, 6), bool)
+    gt[4, 1] = gt[5, 2] = True
+    mask = np.array([False, False, False, True, True, True])
+    ev = evaluate_detections(gt, np.arange(6), np.array([-1, -1, 0, 1, 1, 2]), np.ones(6), query_mask=mask)
+    assert ev.unscored == 1 and ev.detections == 3 and ev.to_dict()["unscored_detections"] == 1
+
+
+def test_evaluation_documents_are_checked(tmp_path: Path) -> None:
+    from stablecues.evaluation.evaluate import check_evaluation
+
+    good = {"protocol": "exact", "recall_at_100p": 0.5, "auc": 0.4, "tp": 1, "fp": 0, "fn": 1, "positives": 2}
+    assert check_evaluation(dict(good), "e.json") == good
+    for key, value in (("tolerance", "x"), ("auc", "high"), ("protocol", "fuzzy"), ("tp", -1),
+                       ("pr_curve", {"recall": [0.1], "precision": []})):
+        with pytest.raises(DatasetError, match=f"e.json: evaluation '{key}' should be"):
+            check_evaluation({**good, key: value}, "e.json")

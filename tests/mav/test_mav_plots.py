@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.collections import LineCollection
 
 from conftest import shared_path
 
@@ -88,8 +89,27 @@ def test_loop_figure() -> None:
     fig = loop_figure(np.array([[0, 0, 0], [5, 0, 0], [5, 5, 0], [0, 1, 0]], float), gt)
     ax_matrix, ax_traj = fig.axes[:2]
     assert "1 pairs" in ax_matrix.get_title()
-    red = [line for line in ax_traj.get_lines() if line.get_color() == "tab:red"]
-    assert len(red) == 1 and list(red[0].get_xdata()) == [0.0, 0.0]
+    (pairs,) = [c for c in ax_traj.collections if isinstance(c, LineCollection)]  # one collection
+    (segment,) = pairs.get_segments()
+    np.testing.assert_allclose(segment, [[0.0, 1.0], [0.0, 0.0]])  # frame 3 -> frame 0
+
+
+def test_loop_figure_of_a_long_trajectory_draws_a_sample() -> None:
+    """10^4 poses on a circle, all close: 5 x 10^7 pairs; the picture pools the matrix and draws
+    at most MAX_PLOTTED_LOOP_PAIRS of them, and says so."""
+    from stablecues.limits import MAX_PLOTTED_LOOP_PAIRS
+    from stablecues.mav.plots import loop_pairs_sample
+
+    n = 10_000
+    gt = np.tril(np.ones((n, n), bool), -200)
+    rows, cols, total = loop_pairs_sample(gt)
+    assert total == int(gt.sum()) and 0 < rows.size <= MAX_PLOTTED_LOOP_PAIRS
+    assert np.all(gt[rows, cols]) and rows.min() < 300 and rows.max() > n - 100  # spread over all
+    angle = np.linspace(0, 20 * np.pi, n)
+    fig = loop_figure(np.c_[np.cos(angle), np.sin(angle), np.zeros(n)], gt)
+    ax_matrix, ax_traj = fig.axes[:2]
+    assert ax_matrix.get_images()[0].get_array().shape[0] <= 1024
+    assert f"of {total} drawn" in ax_traj.get_title()
 
 
 def _read(path: Path) -> FlightLog:

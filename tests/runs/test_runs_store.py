@@ -135,3 +135,108 @@ def test_load_run_errors(tmp_path: Path) -> None:
     (tmp_path / "run" / "meta.json").write_text("[1, 2]")
     with pytest.raises(DatasetError, match="JSON object"):
         load_run(tmp_path / "run")
+
+
+def test_a_new_run_refuses_a_directory_that_is_not_empty(tmp_path: Path) -> None:
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="exists and is not empty"):
+        RunWriter(tmp_path / "run", {}, {})
+    with pytest.raises(DatasetError, match="holds no run .* refusing to overwrite it"):
+        RunWriter(tmp_path / "run", {}, {}, mode="overwrite")
+    assert (tmp_path / "run" / "notes.txt").read_text() == "mine"
+
+
+def test_overwrite_deletes_only_the_runs_own_files(tmp_path: Path) -> None:
+    w = _write(tmp_path / "run", n=4, close=False)
+    w.add_match_picture("loop_0003_0000", np.zeros((4, 6, 3), np.uint8))
+    w.close()
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    (tmp_path / "run" / "matches" / "README.md").write_text("mine")
+    (tmp_path / "run" / "eval_exact.json").write_text("{}")
+    RunWriter(tmp_path / "run", {}, {}, mode="overwrite").close()
+    left = sorted(p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*"))
+    assert left == ["config.json", "matches", "matches/README.md", "meta.json", "notes.txt", "timings.json"]
+
+
+def test_nothing_outside_the_run_is_read_or_written_through_a_link(tmp_path: Path) -> None:
+    _write(tmp_path / "run", n=4, close=False)
+    outside = tmp_path / "outside.jsonl"
+    outside.write_text("theirs\n")
+    (tmp_path / "run" / "extra.jsonl").unlink(missing_ok=True)
+    (tmp_path / "run" / "extra.jsonl").symlink_to(outside)
+    with pytest.raises(DatasetError, match=r"extra\.jsonl: run file is a symbolic link"):
+        RunWriter(tmp_path / "run", {}, {}, mode="resume")
+    with pytest.raises(DatasetError, match=r"extra\.jsonl: per-frame extras is a symbolic link"):
+        load_run(tmp_path / "run").extra()
+    assert outside.read_text() == "theirs\n"
+    (tmp_path / "run" / "extra.jsonl").unlink()
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(b"secret")
+    (tmp_path / "run" / "matches").mkdir()
+    (tmp_path / "run" / "matches" / "loop_0001_0000.png").symlink_to(secret)
+    assert load_run(tmp_path / "run").matches == []
+    (tmp_path / "run" / "meta.json").rename(tmp_path / "meta.json")
+    (tmp_path / "run" / "meta.json").symlink_to(tmp_path / "meta.json")
+    with pytest.raises(DatasetError, match=r"meta\.json: run metadata is a symbolic link"):
+        load_run(tmp_path / "run")
+
+
+def test_a_planted_temporary_file_is_not_written_through(tmp_path: Path) -> None:
+    _write(tmp_path / "run", n=2)
+    outside = tmp_path / "outside.txt"
+    outside.write_text("theirs")
+    (tmp_path / "run" / "meta.json.tmp").symlink_to(outside)
+    RunWriter(tmp_path / "run", {}, {}, mode="resume").close()
+    assert outside.read_text() == "theirs" and load_run(tmp_path / "run").complete
+
+
+def test_reconcile_replays_a_committed_frame_and_drops_an_uncommitted_one(tmp_path: Path) -> None:
+    """The journal of a frame killed after its commit is written as its row; one killed before
+    the commit is dropped, and so are extras and similarity rows past the last row."""
+    w = RunWriter(tmp_path / "run", {}, {}, stages=["total"])
+    for i in range(3):
+        w.add(i, float(i), "no_db_results", -1, math.nan, math.nan, False, {"total": 1.0},
+              {"n": i}, similarity=np.full(i, 0.5, np.float32))
+
+    def killed() -> dict[str, float]:
+        raise KeyboardInterrupt  # the process dies here, between journal and row
+
+    with pytest.raises(KeyboardInterrupt):
+        w.add(3, 3.0, "loop_detected", 1, 0.9, 0.2, True, {"total": 1.0}, {"n": 3},
+              similarity=np.full(3, 0.25, np.float32), commit=killed)
+    assert (tmp_path / "run" / "pending.json").exists()
+    replay = RunWriter(tmp_path / "run", {}, {}, mode="resume")
+    assert replay.reconcile(4) == 4  # the map committed frame 3: its row is written
+    replay.close()
+    run = load_run(tmp_path / "run")
+    assert len(run) == 4 and run.candidates[3] == 1 and run.accepted[3]
+    assert run.extra()[-1] == {"frame": 3, "n": 3}
+    assert run.similarity is not None and np.allclose(run.similarity[3, :3], 0.25)
+    assert math.isnan(run.stage_ms["total"][3])  # the commit's time was not recorded
+    assert not (tmp_path / "run" / "pending.json").exists()
+
+    with pytest.raises(KeyboardInterrupt):
+        w2 = RunWriter(tmp_path / "run2", {}, {}, stages=["total"])
+        for i in range(2):
+            w2.add(i, float(i), "no_db_results", -1, math.nan, math.nan, False, {"total": 1.0},
+                   similarity=np.zeros(i, np.float32))
+        w2.add(2, 2.0, "no_db_results", -1, math.nan, math.nan, False, {"total": 1.0},
+               similarity=np.zeros(2, np.float32), commit=killed)
+    dropped = RunWriter(tmp_path / "run2", {}, {}, mode="resume")
+    assert dropped.reconcile(2) == 2  # not committed: frame 2 is done again
+    with pytest.raises(DatasetError, match="the map holds 5 frames but decisions.csv has 2"):
+        RunWriter(tmp_path / "run2", {}, {}, mode="resume").reconcile(5)
+
+
+def test_similarity_rows_make_the_matrix(tmp_path: Path) -> None:
+    w = RunWriter(tmp_path / "run", {}, {}, stages=["total"])
+    for i in range(4):
+        w.add(i, float(i), "x", -1, math.nan, math.nan, False, {"total": 1.0},
+              similarity=np.arange(i, dtype=np.float32) + 1)
+    assert load_run(tmp_path / "run").similarity[3].tolist() == [1.0, 2.0, 3.0, 0.0]  # before close
+    w.close()
+    sim = np.load(tmp_path / "run" / "similarity.npy")
+    assert sim.shape == (4, 4) and sim[3].tolist() == [1.0, 2.0, 3.0, 0.0] and np.all(np.triu(sim) == 0)
+    with pytest.raises(InputError, match="similarity rows need frames 0, 1, 2"):
+        RunWriter(tmp_path / "r2", {}, {}).add(5, 0.0, "x", -1, 0, 0, False, {}, similarity=np.zeros(5))

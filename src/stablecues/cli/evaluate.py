@@ -22,7 +22,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "(default: the one recorded in the run's meta.json)",
     )
     p.add_argument("--protocol", choices=("exact", "tolerance", "ibow"), default="exact")
-    p.add_argument("--tolerance", type=int, default=0, metavar="N", help="+-N frames (tolerance, ibow)")
+    p.add_argument(
+        "--tolerance",
+        type=int,
+        default=None,
+        metavar="N",
+        help="+-N frames; required by the tolerance and ibow protocols (the README and the demo use 2)",
+    )
+    p.add_argument(
+        "--allow-incomplete",
+        action="store_true",
+        help="score the frames of an interrupted run (refused otherwise)",
+    )
     p.add_argument(
         "--exclude",
         type=int,
@@ -68,7 +79,12 @@ def format_summary(doc: dict) -> str:
         f"ground truth {doc.get('gt_file')}  sha256 {doc.get('gt_sha256')}",
         f"protocol     {doc['protocol']}  tolerance {doc['tolerance']}  exclude {doc['exclude']} frames"
         + (f" + {doc['exclude_s']} s" if doc.get("exclude_s") else ""),
-        f"queries      {doc['queries']}  positives {doc['positives']}  detections {doc['detections']}",
+        f"queries      {doc['queries']}  positives {doc['positives']}  detections {doc['detections']}"
+        + (
+            f" (+{doc['unscored_detections']} in frames that are not queries: not scored)"
+            if doc.get("unscored_detections")
+            else ""
+        ),
         f"TP {doc['tp']}  FP {doc['fp']}  FN {doc['fn']}  "
         f"precision {doc['precision']:.4f}  recall {doc['recall']:.4f}",
         f"R@100P       {100 * doc['recall_at_100p']:.2f} %"
@@ -79,27 +95,36 @@ def format_summary(doc: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
+    from ..errors import ConfigError, DatasetError
     from ..evaluation.evaluate import eval_file_name, evaluate_run, save_evaluation
     from ..groundtruth import View, fit_view, load_ground_truth
     from ..runs import format_timing_table, load_run
 
+    if args.protocol != "exact" and args.tolerance is None:
+        raise ConfigError(
+            f"--protocol {args.protocol} needs --tolerance N (frames either side; README and demo use 2)"
+        )
     run_ = load_run(args.run_dir)
+    if not run_.complete and not args.allow_incomplete:
+        raise DatasetError(
+            f"{run_.path}: the run is incomplete ({len(run_)} frames written; interrupted?): resume it with "
+            "'stablecues run --resume', or pass --allow-incomplete to score the frames it has"
+        )
     gt_path = args.gt or run_.meta.get("ground_truth")
-    if not gt_path:
+    if not gt_path or not isinstance(gt_path, str | Path):
         raise ConfigError(f"{args.run_dir}: no ground truth recorded for this run; pass --gt FILE")
     gt = load_ground_truth(gt_path, variable=args.gt_variable, orientation=args.gt_orientation)
     view = args.gt_view or run_.meta.get("gt_view") or "all"
     if view not in ("all", "left", "right", "pair"):
         raise ConfigError(f"{run_.path}: meta.json gt_view {view!r} is not all, left, right or pair")
-    n_frames = run_.meta.get("dataset_frames", run_.meta.get("frames"))
-    gt = fit_view(gt, cast(View, view), int(n_frames) if n_frames is not None else None)
-    exclude = args.exclude if args.exclude is not None else int(run_.meta.get("exclude", 0) or 0)
+    n_frames = run_.meta_int("dataset_frames", run_.meta_int("frames"))
+    gt = fit_view(gt, cast(View, view), n_frames)
+    exclude = args.exclude if args.exclude is not None else run_.meta_int("exclude", 0) or 0
     _, doc = evaluate_run(
         run_,
         gt,
         protocol=args.protocol,
-        tolerance=args.tolerance,
+        tolerance=args.tolerance or 0,
         exclude=exclude,
         exclude_s=args.exclude_s,
         detections=args.detections,

@@ -5,8 +5,9 @@ Every command lives in its own module of this package with two functions::
     def add_parser(subparsers) -> argparse.ArgumentParser   # declares the command's options
     def run(args: argparse.Namespace) -> int                # parses nothing, calls the library
 
-Known errors (:class:`~stablecues.errors.StableCuesError`) print one line and exit 1;
-anything else shows its traceback.
+Known errors (:class:`~stablecues.errors.StableCuesError`) print one line and exit 1, and so
+does a missing optional dependency (with the command that installs it); anything else shows
+its traceback.
 """
 
 from __future__ import annotations
@@ -19,6 +20,17 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..errors import StableCuesError
+
+# optional top-level modules -> the install command that brings them (pyproject's extras)
+OPTIONAL = {
+    "pymavlink": 'pip install "stablecues[mav]"',
+    "pyulog": 'pip install "stablecues[mav]"',
+    "pymap3d": 'pip install "stablecues[mav]"',
+    "h5py": 'pip install "stablecues[mat73]"',
+    "torch": 'pip install "stablecues[train]"',
+    "onnx": 'pip install "stablecues[train]"',
+    "numba": "pip install numba",
+}
 
 # command name -> module of this package that implements it
 COMMANDS: dict[str, str] = {
@@ -62,6 +74,31 @@ def _not_yet(args: argparse.Namespace) -> int:
     return 2
 
 
+def one_line(text: str) -> str:
+    """``text`` on one line: control characters (newlines among them, which a file's bytes
+    quoted in a message can carry) written as escapes, tabs as spaces."""
+    out = []
+    for ch in text.strip().replace("\t", " "):
+        code = ord(ch)
+        out.append(f"\\x{code:02x}" if code < 32 or code == 127 else ch)
+    return "".join(out)
+
+
+def missing_dependency_hint(exc: ImportError) -> str | None:
+    """One line for an ImportError of a missing optional dependency, None for any other.
+
+    An error whose message already says how to install (``pip install ...``) is given as is;
+    a module of :data:`OPTIONAL` that is not there gets its install command.
+    """
+    text = " ".join(str(exc).split())
+    if "pip install" in text:
+        return text
+    name = (exc.name or "").split(".")[0]
+    if name in OPTIONAL:
+        return f"this needs the optional module {name!r}, which is not installed: {OPTIONAL[name]}"
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -75,7 +112,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except StableCuesError as exc:
-        print(f"stablecues {args.command}: error: {exc}", file=sys.stderr)
+        print(f"stablecues {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
+        return 1
+    except ImportError as exc:
+        hint = missing_dependency_hint(exc)
+        if hint is None:
+            raise
+        print(f"stablecues {args.command}: error: {one_line(hint)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -3,7 +3,7 @@
 stablecues mav info LOG
 stablecues mav plot LOG --out DIR
 stablecues mav poses LOG [--frames DIR --times CSV] --out poses.txt [--dataset DIR]
-stablecues mav gt poses.txt --out gt.png          (also writes gt.npy)
+stablecues mav gt poses.txt --out gt.png          (TUM or KITTI poses; also writes gt.npy)
 """
 
 from __future__ import annotations
@@ -89,8 +89,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     _add_gt_options(poses)
 
-    gt = sub.add_parser("gt", help="loop ground truth (.npy) and its picture from a TUM poses file")
-    gt.add_argument("poses", type=Path, metavar="POSES_TXT")
+    gt = sub.add_parser("gt", help="loop ground truth (.npy) and its picture from TUM or KITTI poses")
+    gt.add_argument("poses", type=Path, metavar="POSES_TXT", help="TUM (t x y z qx qy qz qw) or KITTI poses")
+    gt.add_argument("--times", type=Path, metavar="TIMES_TXT", help="times of KITTI poses (one per line)")
     gt.add_argument("--out", type=Path, required=True, metavar="PNG", help="picture to write")
     gt.add_argument("--npy", type=Path, metavar="NPY", help="ground-truth matrix (default: --out with .npy)")
     _add_gt_options(gt)
@@ -102,7 +103,13 @@ def _add_gt_options(p: argparse.ArgumentParser) -> None:
         "--max-distance", type=float, default=10.0, metavar="M", help="loop distance (default 10 m)"
     )
     p.add_argument("--max-angle", type=float, default=None, metavar="DEG", help="largest heading difference")
-    p.add_argument("--min-gap-s", type=float, default=20.0, metavar="S", help="smallest time between a pair")
+    p.add_argument(
+        "--min-gap-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="smallest time between a pair (default 20 s; none for KITTI poses without --times)",
+    )
     p.add_argument("--min-gap-frames", type=int, default=0, metavar="N", help="smallest index difference")
 
 
@@ -207,7 +214,7 @@ def _poses(args: argparse.Namespace) -> int:
             quaternions=poses.quaternions[keep],
             max_angle_deg=args.max_angle,
             times=poses.frame_times[keep],
-            min_gap_s=args.min_gap_s,
+            min_gap_s=args.min_gap_s if args.min_gap_s is not None else 20.0,
             min_gap_frames=args.min_gap_frames,
         )
         out = write_image_folder(args.dataset, frames, poses, loops=loops, calibration=args.calib)
@@ -248,9 +255,22 @@ def _gt(args: argparse.Namespace) -> int:
     from ..geometry.rotations import matrix_to_quat
     from ..mav.loops import loops_from_trajectory
     from ..mav.plots import loop_figure
-    from ..trajectory import read_tum
+    from ..trajectory import read_poses, read_times
 
-    times, poses = read_tum(args.poses)
+    times, poses = read_poses(args.poses)
+    if times is None:  # KITTI poses carry no times: from --times, else gaps are in frames only
+        if args.times is not None:
+            times = read_times(args.times)
+            if times.shape[0] != poses.shape[0]:
+                raise InputError(
+                    f"{args.times}: expected {poses.shape[0]} times (one per pose), found {times.shape[0]}"
+                )
+        elif args.min_gap_s:
+            raise InputError(
+                f"{args.poses}: KITTI poses carry no times; --min-gap-s needs --times TIMES_TXT "
+                "(or use --min-gap-frames)"
+            )
+    min_gap_s = args.min_gap_s if args.min_gap_s is not None else (20.0 if times is not None else 0.0)
     positions = poses[:, :3, 3]
     gt = loops_from_trajectory(
         positions,
@@ -258,7 +278,7 @@ def _gt(args: argparse.Namespace) -> int:
         quaternions=matrix_to_quat(poses[:, :3, :3]) if args.max_angle is not None else None,
         max_angle_deg=args.max_angle,
         times=times,
-        min_gap_s=args.min_gap_s,
+        min_gap_s=min_gap_s,
         min_gap_frames=args.min_gap_frames,
     )
     npy = args.npy or args.out.with_suffix(".npy")

@@ -43,13 +43,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def collect_rows(run_dirs: list[Path], protocol: str | None = None) -> list[dict[str, Any]]:
     """One row per (run, evaluation file); a run without one gives a row with protocol None."""
+    from ..evaluation.evaluate import run_evaluations
     from ..runs import load_run
 
     rows: list[dict[str, Any]] = []
     for d in run_dirs:
         run_ = load_run(d)
         total = (run_.timings().get("total") or {}).get("mean")
-        evals = [e for e in run_.evaluations().values() if protocol is None or e.get("protocol") == protocol]
+        evals = [
+            e for e in run_evaluations(run_).values() if protocol is None or e.get("protocol") == protocol
+        ]
         if not evals:
             rows.append(
                 {c: None for c in COLUMNS}

@@ -20,6 +20,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--gt", type=Path, help="loop ground truth file to record with the run")
     p.add_argument("--db", type=Path, help="database file (default: RUN_DIR/map.sqlite)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the run already in --out (its own files only); without it an existing, "
+                        "non-empty --out is refused")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--pictures", type=int, default=4, help="match pictures of accepted loops to save")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -54,18 +57,27 @@ def run(args: argparse.Namespace) -> int:
     from ..datasets import open_dataset
     from ..detection import preset
     from ..detection.run import run_dataset
+    from ..errors import ConfigError
 
+    if args.resume and args.overwrite:
+        raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one")
     config = preset(args.preset, parse_overrides(args.set))
     dataset = open_dataset(args.dataset, format=args.format)
     gt = args.gt if args.gt is not None else dataset.ground_truth_path()
-    meta = {"dataset": str(args.dataset), "format": getattr(dataset, "format", args.format),
+    described = dataset.describe() if hasattr(dataset, "describe") else {}
+    meta = {**described, "dataset": str(args.dataset), "format": getattr(dataset, "format", args.format),
             "ground_truth": None if gt is None else str(gt), "overrides": args.set}
     summary = run_dataset(dataset, config, args.out, preset_name=args.preset, meta=meta,
-                          database=args.db, resume=args.resume, max_frames=args.max_frames,
-                          pictures=args.pictures, progress=not args.no_progress)
+                          database=args.db, resume=args.resume, overwrite=args.overwrite,
+                          max_frames=args.max_frames, pictures=args.pictures, progress=not args.no_progress)
     statuses = ", ".join(f"{k} {v}" for k, v in sorted(summary.statuses.items()))
-    print(f"{summary.frames} frames, {summary.loops} loops accepted, "
-          f"{summary.ms_per_frame:.1f} ms/frame; {statuses}")
+    if summary.already_complete:
+        print(f"{summary.out_dir}: the run is already complete; nothing to resume")
+    elif summary.resumed_from:
+        print(f"resumed at frame {summary.resumed_from}")
+    ms = summary.ms_per_frame
+    speed = f"{ms:.1f} ms/frame" if ms == ms else "no frame timed"
+    print(f"{summary.frames} frames, {summary.loops} loops accepted, {speed}; {statuses}")
     if summary.mask_fallbacks:
         print(f"semantic masking fell back to all features on {summary.mask_fallbacks} frames")
     print(f"run written to {summary.out_dir}" + (f" (ground truth: {gt})" if gt else ""))

@@ -78,7 +78,9 @@ def _train(args: argparse.Namespace) -> int:
     try:
         from ..semantics.train import TrainConfig, train
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError('segment train needs PyTorch: pip install "stablecues[train]"') from exc
+        from ..errors import MissingDependencyError
+
+        raise MissingDependencyError('segment train needs PyTorch: pip install "stablecues[train]"') from exc
     from ..config import merge
 
     overrides: dict[str, Any] = {"data": args.data, "out_dir": args.out}

@@ -51,6 +51,31 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+def check_image_size(path: Path | None, size: tuple[int, int] | None, source: str) -> None:
+    """Raise unless the image file ``path`` is ``size`` (width, height), when both are known.
+
+    Raises:
+        ImageError: naming the file, the size the calibration says and the size found.
+    """
+    if path is None or size is None:
+        return
+    from ..errors import ImageError
+    from ..imageio import header_size, read_image
+
+    found = None
+    if Path(path).is_file():
+        with Path(path).open("rb") as fh:
+            found = header_size(fh.read(65536))
+    if found is None:
+        image = read_image(path, "unchanged")
+        found = (image.shape[1], image.shape[0])
+    if tuple(found) != tuple(size):
+        raise ImageError(
+            f"{path}: expected a {size[0]}x{size[1]} image (the size {source or 'the calibration'} gives), "
+            f"found {found[0]}x{found[1]}"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -72,6 +97,11 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.depth_scale is not None:
         calib = dataclasses.replace(calib, depth_scale=args.depth_scale)
+    right_size = calib.right.image_size if calib.right is not None else None
+    for path, size in ((args.image_a, calib.left.image_size), (args.image_b, calib.left.image_size),
+                       (args.right_a, right_size), (args.right_b, right_size),
+                       (args.depth_a, calib.left.image_size), (args.depth_b, calib.left.image_size)):
+        check_image_size(path, size, calib.source)
     overrides = {
         key: value
         for key, value in (

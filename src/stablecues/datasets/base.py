@@ -33,6 +33,7 @@ __all__ = [
     "attach_times",
     "check_one_per_image",
     "find_first",
+    "inside",
     "load_calibration_lazily",
 ]
 
@@ -236,6 +237,24 @@ def _relative(path: Path, root: Path) -> str:
         return path.relative_to(root).as_posix()
     except ValueError:
         return path.name
+
+
+def inside(root: Path, entry: str, manifest: Path, lineno: int) -> Path:
+    """The file a manifest line names, ``root / entry``, refused when it is not inside ``root``.
+
+    Datasets name their files relative to their own folder; an absolute path or one that climbs
+    out (``../..``) would read files the dataset does not hold.
+
+    Raises:
+        DatasetError: naming the manifest and the line.
+    """
+    rel = Path(entry)
+    if rel.is_absolute() or rel.anchor or ".." in rel.parts:
+        raise DatasetError(
+            f"{manifest}: line {lineno} names {entry[:80]!r}; expected a path inside the dataset folder "
+            "(no absolute path, no '..')"
+        )
+    return root / rel
 
 
 def find_first(folder: Path, names: Sequence[str]) -> Path | None:

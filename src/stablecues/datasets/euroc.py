@@ -21,11 +21,12 @@ import re
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from ..errors import DatasetError
+from ..fileio import load_yaml, read_text
+from ..limits import MAX_CALIBRATION_BYTES
 from ..trajectory import nearest, ns_to_seconds, read_euroc, read_tum
-from .base import FrameRecord, SequenceDataset
+from .base import FrameRecord, SequenceDataset, inside
 
 
 def read_euroc_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -38,7 +39,7 @@ def read_euroc_list(path: Path) -> tuple[np.ndarray, list[str]]:
         raise DatasetError(f"{path}: EuRoC image list not found")
     stamps: list[int] = []
     names: list[str] = []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "EuRoC image list").splitlines(), 1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
@@ -48,6 +49,7 @@ def read_euroc_list(path: Path) -> tuple[np.ndarray, list[str]]:
                 f"{path}: expected 'timestamp_ns,filename' per line, line {lineno} is {text[:60]!r}"
             )
         stamps.append(int(parts[0]))
+        inside(path.parent, parts[1], path, lineno)  # the names are files of data/ beside it
         names.append(parts[1])
     if not names:
         raise DatasetError(f"{path}: expected at least one image line, found none")
@@ -62,11 +64,9 @@ def read_sensor_yaml(path: Path) -> dict[str, object]:
     """
     if not path.is_file():
         raise DatasetError(f"{path}: EuRoC sensor.yaml not found")
-    text = "\n".join(ln for ln in path.read_text(encoding="utf-8").splitlines() if not ln.startswith("%"))
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    raw = read_text(path, "EuRoC sensor.yaml", limit=MAX_CALIBRATION_BYTES)
+    text = "\n".join(ln for ln in raw.splitlines() if not ln.startswith("%"))
+    data = load_yaml(text, path)
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: expected a mapping of sensor fields, found {type(data).__name__}")
     return data
@@ -83,7 +83,13 @@ def sensor_extrinsics(path: Path) -> np.ndarray:
     values = tbs.get("data") if isinstance(tbs, dict) else None
     if not isinstance(values, list) or len(values) != 16:
         raise DatasetError(f"{path}: expected T_BS with 16 numbers in 'data', found {values!r:.60}")
-    return np.asarray(values, dtype=np.float64).reshape(4, 4)
+    try:
+        t_bs = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{path}: expected T_BS with 16 numbers in 'data', found {values!r:.60}") from None
+    if not np.isfinite(t_bs).all():
+        raise DatasetError(f"{path}: expected 16 finite numbers in T_BS, found {values!r:.60}")
+    return t_bs
 
 
 def _find_tum_groundtruth(seq: Path) -> Path | None:

@@ -18,13 +18,16 @@ directly in ``DIR``.
 from __future__ import annotations
 
 import logging
+import math
 import re
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DatasetError
+from ..fileio import read_text
 from ..imageio import list_images, match_by_stem
+from ..limits import MAX_CALIBRATION_BYTES
 from ..trajectory import read_times, read_tum
 from .base import FrameRecord, SequenceDataset, attach_poses, attach_times, find_first
 
@@ -42,7 +45,7 @@ def read_settings_value(path: Path, key: str) -> float | None:
     if not path.is_file():
         raise DatasetError(f"{path}: settings file not found")
     pattern = re.compile(rf"^\s*{re.escape(key)}\s*:\s*(\S+)")
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+    for line in read_text(path, "settings file", limit=MAX_CALIBRATION_BYTES).splitlines():
         m = pattern.match(line)
         if m:
             try:
@@ -93,7 +96,7 @@ def _depth_factor(
         factor = DEFAULT_DEPTH_FACTOR
         if records and records[0].depth is not None:
             logger.warning("%s: no DepthMapFactor given; assuming %g depth units per metre", root, factor)
-    if not factor > 0:
+    if not factor > 0 or not math.isfinite(factor):
         raise DatasetError(f"{calib or root}: DepthMapFactor must be > 0, found {factor}")
     return float(factor)
 

@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import DatasetError
+from ..fileio import read_text
 from ..geometry.calibration import load_kitti
 from ..geometry.camera import Calibration
 from ..imageio import list_images, match_by_stem
@@ -37,7 +38,7 @@ def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise DatasetError(f"{path}: KITTI calibration file not found")
     out: dict[str, np.ndarray] = {}
-    for lineno, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "KITTI calibration").splitlines(), 1):
         if not line.strip():
             continue
         key, sep, rest = line.partition(":")
@@ -50,6 +51,8 @@ def read_kitti_calib(path: Path) -> dict[str, np.ndarray]:
             out[key.strip()] = np.asarray([float(v) for v in values]).reshape(3, 4)
         except ValueError:
             raise DatasetError(f"{path}: line {lineno} is not numeric") from None
+        if not np.isfinite(out[key.strip()]).all():
+            raise DatasetError(f"{path}: line {lineno}: expected 12 finite numbers")
     if "P0" not in out:
         raise DatasetError(f"{path}: expected a P0 line, found keys {sorted(out)}")
     return out
@@ -88,7 +91,12 @@ def _camera_offset(calib: dict[str, np.ndarray] | None, calib_file: Path, pname:
     if calib is None or pname not in calib:
         raise DatasetError(f"{calib_file}: {pname} needed to place the colour camera's poses")
     p = calib[pname]
-    t_cam = np.linalg.solve(p[:, :3], p[:, 3])  # x_cam = x_cam0 + t_cam
+    k = p[:, :3]
+    if not (k[0, 0] > 0 and k[1, 1] > 0 and abs(np.linalg.det(k)) > 1e-12):
+        raise DatasetError(
+            f"{calib_file}: {pname}: expected a camera matrix with focal lengths > 0 (it is singular)"
+        )
+    t_cam = np.linalg.solve(k, p[:, 3])  # x_cam = x_cam0 + t_cam
     offset = np.eye(4)
     offset[:3, 3] = -t_cam
     return offset

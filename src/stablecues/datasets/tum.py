@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
+from ..fileio import read_text
 from ..imageio import list_images
 from ..trajectory import associate, nearest, read_tum
-from .base import FrameRecord, SequenceDataset, find_first
+from .base import FrameRecord, SequenceDataset, find_first, inside
 
 TUM_DEPTH_FACTOR = 5000.0
 _TIMESTAMP_NAME = re.compile(r"^\d+(\.\d+)?$")
@@ -36,7 +37,7 @@ _TUM_CAMERA = re.compile(r"^fr[123]$")
 def _read_list(path: Path, root: Path, what: str) -> tuple[np.ndarray, list[Path]]:
     times: list[float] = []
     files: list[Path] = []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, what).splitlines(), 1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
@@ -49,7 +50,7 @@ def _read_list(path: Path, root: Path, what: str) -> tuple[np.ndarray, list[Path
             times.append(float(parts[0]))
         except ValueError:
             raise DatasetError(f"{path}: line {lineno}: timestamp {parts[0]!r} is not a number") from None
-        files.append(root / parts[1])
+        files.append(inside(root, parts[1], path, lineno))
     if not files:
         raise DatasetError(f"{path}: expected at least one 'timestamp filename' line, found none")
     return np.asarray(times, dtype=np.float64), files

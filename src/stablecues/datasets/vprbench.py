@@ -4,7 +4,8 @@ Layout::
 
     DIR/ref/*         reference traverse (sorted by name)
     DIR/query/*       query traverse
-    DIR/ground_truth_new.npy   object array, rows [query i, [matching ref ids]] (allow_pickle)
+    DIR/ground_truth_new.npy   object array, rows [query i, [matching ref ids]] (a pickle,
+                               read by a restricted unpickler: arrays, lists, ints only)
 
 The sequence is every reference image, then every query: frame ``k < R`` is ``ref`` image ``k``
 and frame ``R + i`` is query ``i``. The loop ground truth maps onto these combined indices and

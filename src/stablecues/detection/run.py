@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections import Counter
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -12,8 +12,11 @@ import numpy as np
 from tqdm import tqdm
 
 from ..config import to_dict
-from ..errors import DatasetError
-from ..runs import RunWriter
+from ..errors import ConfigError, DatasetError
+from ..limits import MAX_SIMILARITY_FRAMES
+from ..runs import RunWriter, load_run
+from ..runs.store import own_file
+from ..verification.result import Verification
 from .config import DetectorConfig
 from .decision import LoopDecision
 from .detector import LoopDetector
@@ -25,7 +28,19 @@ STAGES = ("extract", "segment", "mask", "transform", "lift", "query", "verify", 
 
 @dataclass
 class RunSummary:
-    """What a run did: frames, loops, statuses, time per frame, where it is."""
+    """What a run did, over all its frames (also those of the sessions it resumed).
+
+    Attributes:
+        out_dir: the run directory.
+        frames: frames in the run.
+        loops: loops accepted.
+        statuses: frames per status.
+        ms_per_frame: mean time per frame (NaN when no frame has a time).
+        mask_fallbacks: frames where semantic masking fell back to all features.
+        pictures: the match pictures saved.
+        resumed_from: the frame this session started at (0 for a new run).
+        already_complete: the run was complete before this call; nothing was done.
+    """
 
     out_dir: Path
     frames: int
@@ -34,6 +49,43 @@ class RunSummary:
     ms_per_frame: float
     mask_fallbacks: int
     pictures: list[Path] = field(default_factory=list)
+    resumed_from: int = 0
+    already_complete: bool = False
+
+
+class _DeferredCommit:
+    """The detector's database with its ``add`` held back until the run has journalled the
+    frame's decision: the run directory's record (decisions.csv) and the map then never
+    disagree by more than a journalled frame, whatever instant the process is killed at.
+
+    Everything but ``add`` goes straight to the database.
+    """
+
+    def __init__(self, db: Any) -> None:
+        self._db = db
+        self._held: tuple[tuple[Any, ...], dict[str, Any]] | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._db, name)
+
+    def __len__(self) -> int:
+        return len(self._db)
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        if self._held is not None:
+            raise RuntimeError("a second database add before the first was committed")
+        self._held = (args, kwargs)
+
+    def commit(self) -> dict[str, float]:
+        """Add the held entry; milliseconds it took, for the ``add`` and ``total`` stages."""
+        if self._held is None:
+            return {}
+        args, kwargs = self._held
+        self._held = None
+        t = time.perf_counter()
+        self._db.add(*args, **kwargs)
+        ms = (time.perf_counter() - t) * 1e3
+        return {"add": ms, "total": ms}
 
 
 def run_dataset(
@@ -45,6 +97,7 @@ def run_dataset(
     meta: dict[str, Any] | None = None,
     database: str | Path | None = None,
     resume: bool = False,
+    overwrite: bool = True,
     max_frames: int | None = None,
     pictures: int = 4,
     progress: bool = True,
@@ -52,100 +105,167 @@ def run_dataset(
 ) -> RunSummary:
     """Run the loop detector over ``dataset`` and write a run directory.
 
+    A run killed at any instant resumes (``resume=True``) to the decisions an uninterrupted
+    run makes: each frame's decision is journalled before the detector's map commits it, and
+    the similarity rows are appended frame by frame.
+
     Args:
         dataset: a :class:`stablecues.datasets.base.Dataset` (frames in order).
         config: the detector settings.
         out_dir: the run directory (decisions.csv, similarity.npy, config.json, meta.json, ...).
         preset_name: the preset's name, recorded in meta.json.
         meta: more to record (dataset path, format, ground truth file).
-        database: keep the detector's database in this file (default: ``out_dir/map.sqlite``).
+        database: keep the detector's database in this file (default: ``out_dir/map.sqlite``);
+            its folder must exist.
         resume: continue an interrupted run (its database and decisions) instead of starting over.
+        overwrite: replace a run already in ``out_dir`` (its own files only); False refuses a
+            directory that exists and is not empty.
         max_frames: stop after this many frames (all when None).
-        pictures: how many match pictures of accepted loops to save (evenly spread).
+        pictures: how many match pictures of accepted loops to save (evenly spread over the run).
         progress: show a progress bar.
         segmenter: replaces the shipped segmentation network (tests, other models).
 
     Returns:
-        a summary of the run.
+        a summary of the whole run.
+
+    Raises:
+        ConfigError: a similarity matrix larger than :data:`stablecues.limits.MAX_SIMILARITY_FRAMES`.
+        DatasetError: an output directory, database or run that cannot be used.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    db_path = Path(database) if database is not None else out / "map.sqlite"
-    if not resume and db_path.exists():
-        _remove_database(db_path, named=database is not None)
-    n = len(dataset) if max_frames is None else min(len(dataset), max_frames)
+    n = len(dataset) if max_frames is None else max(0, min(len(dataset), max_frames))
+    if config.similarity and n > MAX_SIMILARITY_FRAMES:
+        raise ConfigError(
+            f"{out}: a similarity matrix of {n} x {n} frames is over the {MAX_SIMILARITY_FRAMES} accepted "
+            "(stablecues.limits); run with --set similarity=false"
+        )
+    db_path = _database_path(out, database)
+    if not resume and database is not None and db_path.exists():
+        _remove_database(db_path, named=True)  # raises: a named database is never deleted
+    if resume:
+        done = _complete_run(out, n)
+        if done is not None:
+            return done
     writer = RunWriter(
         out,
         to_dict(config),
-        _run_meta(config, preset_name, n, meta),
+        _run_meta(config, preset_name, n, {"dataset_frames": len(dataset), **(meta or {})}),
         stages=STAGES,
-        mode="resume" if resume else "overwrite",
+        mode="resume" if resume else ("overwrite" if overwrite else "new"),
     )
+    if not resume and db_path.exists():
+        _remove_database(db_path, named=False)
     detector = LoopDetector(config, database=db_path, segmenter=segmenter)
-    start = writer.next_frame
-    if len(detector) != start:
-        raise_mismatch(out, len(detector), start)
-    sim = _initial_similarity(config, n, out / "similarity.npy", resume)
-    tally = _Tally()
-    bar = tqdm(total=n, initial=start, desc=f"run {preset_name}", unit="frame", disable=not progress)
+    deferred = _DeferredCommit(detector.db)
+    detector.db = deferred  # type: ignore[assignment]
+    decisions: dict[int, LoopDecision] = {}
     try:
-        for i, frame in enumerate(dataset):
-            if i >= n:
-                break
-            if i < start:
-                continue
+        start = writer.reconcile(len(detector))
+        _process(dataset, detector, writer, deferred, range(start, n), decisions, progress, preset_name)
+        saved = _match_pictures(dataset, detector, writer, decisions, pictures)
+    finally:
+        detector.close()
+    writer.close()
+    return _summary(out, saved, start)
+
+
+def _process(
+    dataset: Any,
+    detector: LoopDetector,
+    writer: RunWriter,
+    deferred: _DeferredCommit,
+    frames: range,
+    decisions: dict[int, LoopDecision],
+    progress: bool,
+    name: str,
+) -> None:
+    """Detect, journal, commit and write each frame of ``frames`` in order."""
+    similarity = detector.config.similarity
+    bar = tqdm(total=frames.stop, initial=frames.start, desc=f"run {name}", unit="frame",
+               disable=not progress)
+    try:
+        for i in frames:
+            frame = dataset[i]
             d = detector.process(frame)
-            tally.count(d)
-            row = detector.last_similarity
-            if row is not None:
-                sim[i, : min(row.size, i)] = row[: min(row.size, i)]
-            _write_decision(writer, d, float(frame.timestamp))
+            row = detector.last_similarity if similarity else None
+            writer.add(
+                d.frame_index,
+                float(frame.timestamp),
+                d.status.value,
+                d.candidate_frame,
+                d.confidence if d.candidate >= 0 else float("nan"),
+                d.raw_score if d.candidate >= 0 else float("nan"),
+                d.accepted,
+                d.timings,
+                d.extras(),
+                similarity=None if not similarity else (row if row is not None else np.zeros(0, np.float32)),
+                commit=deferred.commit,
+            )
+            if d.accepted:
+                decisions[d.frame_index] = d
             bar.update(1)
-            if config.similarity and (i + 1) % 200 == 0:
-                writer.set_similarity(sim[: i + 1, : i + 1])
     finally:
         bar.close()
-        if config.similarity:
-            writer.set_similarity(sim)
-        detector.close()
-    saved = _match_pictures(dataset, tally.accepted, writer, pictures, config)
-    writer.close()
+
+
+def _database_path(out: Path, database: str | Path | None) -> Path:
+    """The database file: the one named (its folder must exist), else ``out/map.sqlite``.
+
+    Raises:
+        DatasetError: the named file's folder does not exist, or the default one is a link.
+    """
+    if database is None:
+        return own_file(out / "map.sqlite", "the run's database")
+    db = Path(database)
+    if not db.parent.is_dir():
+        raise DatasetError(f"{db}: the database's folder {db.parent} does not exist (it is not created)")
+    return db
+
+
+def _complete_run(out: Path, n: int) -> RunSummary | None:
+    """The summary of a run in ``out`` that is already complete with ``n`` frames or more, else None."""
+    if not (out / "meta.json").is_file():
+        return None
+    run = load_run(out)
+    if not run.complete or len(run) < n:
+        return None
+    return _summary(out, [], len(run), already=True)
+
+
+def _summary(out: Path, pictures: list[Path], start: int, *, already: bool = False) -> RunSummary:
+    """What the whole run did, read back from its directory."""
+    run = load_run(out)
+    totals = run.stage_ms.get("total", np.zeros(0))
+    finite = totals[np.isfinite(totals)]
+    fallbacks = sum(1 for e in run.extra() if isinstance(e, dict) and e.get("mask_fallback"))
     return RunSummary(
         out,
-        len(tally.totals),
-        len(tally.accepted),
-        dict(tally.statuses),
-        float(np.mean(tally.totals)) if tally.totals else float("nan"),
-        tally.fallbacks,
-        saved,
+        len(run),
+        int(run.accepted.sum()),
+        run.status_counts(),
+        float(finite.mean()) if finite.size else float("nan"),
+        fallbacks,
+        pictures if pictures else (run.matches if already else []),
+        start,
+        already,
     )
-
-
-@dataclass
-class _Tally:
-    """What the summary counts over the processed frames."""
-
-    statuses: Counter[str] = field(default_factory=Counter)
-    accepted: list[LoopDecision] = field(default_factory=list)
-    fallbacks: int = 0
-    totals: list[float] = field(default_factory=list)
-
-    def count(self, d: LoopDecision) -> None:
-        self.statuses[d.status.value] += 1
-        self.fallbacks += int(d.mask_fallback)
-        self.totals.append(d.timings["total"])
-        if d.accepted:
-            self.accepted.append(d)
 
 
 def _remove_database(db_path: Path, *, named: bool) -> None:
-    """Delete a previous run's database (and its SQLite side files) before starting over.
+    """Delete a previous run's database (its SQLite side files and index files too) before
+    starting over.
 
     Raises:
         DatasetError: the user named the file (``named``): it is never deleted silently.
     """
     if named:
         raise DatasetError(f"{db_path}: database file exists; continue it with --resume or remove it")
+    from .. import database
+
+    remover = getattr(database, "remove_database", None)  # the database's own, knowing its files
+    if remover is not None:
+        remover(db_path)
+        return
     for suffix in ("", "-wal", "-shm"):
         Path(str(db_path) + suffix).unlink(missing_ok=True)
 
@@ -172,62 +292,48 @@ def _run_meta(
     }
 
 
-def _initial_similarity(config: DetectorConfig, n: int, sim_path: Path, resume: bool) -> np.ndarray:
-    """The (n, n) float32 similarity matrix to fill ((0, 0) when turned off), resumed from the file.
-
-    The matrix takes 4 bytes x n^2: ``config.similarity`` turns it off for very long runs.
-    """
-    sim = np.zeros((n, n) if config.similarity else (0, 0), np.float32)
-    if config.similarity and resume and sim_path.exists():
-        old = np.load(sim_path)
-        k = min(old.shape[0], n)
-        sim[:k, :k] = old[:k, :k]
-    return sim
-
-
-def _write_decision(writer: RunWriter, d: LoopDecision, timestamp: float) -> None:
-    """One row of ``decisions.csv`` and its extras (:meth:`LoopDecision.extras`) for ``extra.jsonl``."""
-    writer.add(
-        d.frame_index,
-        timestamp,
-        d.status.value,
-        d.candidate_frame,
-        d.confidence if d.candidate >= 0 else float("nan"),
-        d.raw_score if d.candidate >= 0 else float("nan"),
-        d.accepted,
-        d.timings,
-        d.extras(),
-    )
-
-
-def raise_mismatch(out: Path, entries: int, rows: int) -> None:
-    """Raise: the run's database and its decisions.csv cover different numbers of frames."""
-    raise DatasetError(
-        f"{out}: the map holds {entries} frames but decisions.csv has {rows}; "
-        "cannot resume this run (start it again without --resume)"
-    )
-
-
 def _match_pictures(
-    dataset: Any, accepted: list[LoopDecision], writer: RunWriter, count: int, config: DetectorConfig
+    dataset: Any,
+    detector: LoopDetector,
+    writer: RunWriter,
+    decisions: dict[int, LoopDecision],
+    count: int,
 ) -> list[Path]:
-    """Pictures of a few accepted loops (evenly spread), when the drawing module is there."""
-    if count <= 0 or not accepted:
+    """Pictures of a few accepted loops, evenly spread over the whole run (also the part an
+    earlier session wrote: those pairs are verified again as the detector verified them)."""
+    if count <= 0:
         return []
     try:
         from ..verification.plot import draw_verification
     except ImportError:  # drawing lands with the verification plots
         return []
-    picks = [accepted[int(i)] for i in np.linspace(0, len(accepted) - 1, min(count, len(accepted)))]
+    run = load_run(writer.path)
+    loops = [(int(f), int(c)) for f, c, a in zip(run.frames, run.candidates, run.accepted, strict=True) if a]
+    if not loops:
+        return []
+    picks = [loops[int(i)] for i in np.linspace(0, len(loops) - 1, min(count, len(loops)))]
     saved: list[Path] = []
-    for d in picks:
-        if d.verification is None:
-            continue
+    for frame, cand in picks:
         try:
-            q = dataset[d.frame_index]
-            c = dataset[d.candidate_frame]
+            q = dataset[frame]
+            c = dataset[cand]
         except (TypeError, IndexError, KeyError):
             return saved
-        image = draw_verification(q.image, c.image, d.verification)
-        saved.append(writer.add_match_picture(f"loop_{d.frame_index:05d}_{d.candidate_frame:05d}", image))
+        d = decisions.get(frame)
+        verification = d.verification if d is not None else _verify_again(detector, q, cand)
+        if verification is None:
+            continue
+        image = draw_verification(q.image, c.image, verification)
+        saved.append(writer.add_match_picture(f"loop_{frame:05d}_{cand:05d}", image))
     return saved
+
+
+def _verify_again(detector: LoopDetector, frame: Any, candidate: int) -> Verification | None:
+    """The verification of an accepted loop of an earlier session, made again through the
+    detector's own preparation and verifier (the map's entry ``k`` is frame ``k`` of a run)."""
+    if detector.config.verification is None or not 0 <= candidate < len(detector):
+        return None
+    prep = detector.preparer.prepare(frame)
+    verifier = detector.preparer.verifier(prep.calibration)
+    result = verifier.verify_entry(prep.view, detector.db.entry(candidate))
+    return result if result.accepted else None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -76,7 +77,8 @@ def evaluate_run(
         ``gt_sha256``, ``timing_ms`` and ``pr_curve`` among others).
 
     Raises:
-        DatasetError: the ground truth is too small for the run.
+        DatasetError: the ground truth is too small for the run, or (when the run's meta
+            records ``dataset_frames``) not of the dataset's size.
         InputError: bad settings.
     """
     if protocol not in PROTOCOLS:
@@ -89,6 +91,12 @@ def evaluate_run(
             hint = " (an interleaved left/right release? choose a view of the ground truth)"
         raise DatasetError(
             f"{gt.path or 'ground truth'}: covers {gt.n} frames, but the run has frame {n_run - 1}{hint}"
+        )
+    n_data = run.meta_int("dataset_frames")
+    if n_data is not None and gt.n != n_data:
+        raise DatasetError(
+            f"{gt.path or 'ground truth'}: covers {gt.n} frames, but the run's dataset has {n_data} "
+            "(a ground truth of another sequence, or of another view?)"
         )
     matrix, mask, times = gt.matrix, gt.query_mask, None
     if exclude_s > 0:
@@ -151,8 +159,67 @@ def load_evaluation(path: str | Path) -> dict[str, Any]:
     Raises:
         DatasetError: missing or invalid file, or one without the expected keys.
     """
-    doc = read_json(Path(path), "evaluation")
+    return check_evaluation(read_json(Path(path), "evaluation"), path)
+
+
+def _number(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _count(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _curve(v: object) -> bool:
+    if not isinstance(v, dict):
+        return False
+    r, p = v.get("recall"), v.get("precision")
+    return (
+        isinstance(r, list) and isinstance(p, list) and len(r) == len(p) and all(map(_number, r + p))
+    )
+
+
+# key -> (check of a value that is present and not null, what it should be)
+_EVALUATION_KEYS: dict[str, tuple[Any, str]] = {
+    "protocol": (lambda v: v in PROTOCOLS, f"one of {', '.join(PROTOCOLS)}"),
+    **{
+        k: (_number, "a finite number")
+        for k in ("recall_at_100p", "auc", "precision", "recall", "exclude_s")
+    },
+    **{
+        k: (_count, "a whole number >= 0")
+        for k in ("tp", "fp", "fn", "positives", "queries", "detections", "tolerance", "exclude")
+    },
+    **{k: (lambda v: isinstance(v, str), "text") for k in ("gt_file", "gt_sha256", "gt_view", "gt_variable")},
+    "detections_used": (lambda v: v in ("accepted", "all"), "'accepted' or 'all'"),
+    "score_column": (lambda v: v in ("score", "raw_score"), "'score' or 'raw_score'"),
+    "pr_curve": (_curve, "recall and precision lists of numbers of one length"),
+    "gt_notes": (lambda v: isinstance(v, dict), "an object"),
+}
+
+
+def check_evaluation(doc: dict[str, Any], source: object) -> dict[str, Any]:
+    """``doc`` after checking it is an evaluation document: the keys that tables and reports
+    read, of the types they expect.
+
+    Raises:
+        DatasetError: naming ``source`` and the first key that is missing or of another type.
+    """
     for key in ("protocol", "recall_at_100p", "auc", "tp", "fp", "fn", "positives"):
         if key not in doc:
-            raise DatasetError(f"{path}: evaluation file lacks {key!r}")
+            raise DatasetError(f"{source}: evaluation file lacks {key!r}")
+    for key, (ok, want) in _EVALUATION_KEYS.items():
+        if doc.get(key) is not None and not ok(doc[key]):
+            raise DatasetError(f"{source}: evaluation {key!r} should be {want}, found {doc[key]!r:.40}")
     return doc
+
+
+def run_evaluations(run: Run) -> dict[str, dict[str, Any]]:
+    """The run's ``eval_*.json`` documents (file stem -> document), each checked.
+
+    Raises:
+        DatasetError: a file that is not an evaluation document.
+    """
+    return {
+        stem: check_evaluation(doc, run.path / f"{stem}.json") for stem, doc in run.evaluations().items()
+    }

@@ -94,6 +94,8 @@ class Evaluation:
         curve: the whole precision-recall curve.
         correct: (M,) bool correctness of each detection, in the order of ``detection_frames``.
         detection_frames: (M,) int64 query frame of each detection.
+        unscored: detections in frames that are not queries (``query_mask`` False: the
+            reference pass of a two-pass set), left out of every count above.
     """
 
     protocol: str
@@ -115,6 +117,7 @@ class Evaluation:
     curve: PRCurve
     correct: np.ndarray = field(repr=False)
     detection_frames: np.ndarray = field(repr=False)
+    unscored: int = 0
 
     def to_dict(self, *, curve: bool = True) -> dict[str, Any]:
         """JSON-ready summary (the PR curve included unless ``curve=False``)."""
@@ -135,6 +138,7 @@ class Evaluation:
             "threshold_at_100p": self.threshold_at_100p,
             "tp_at_100p": self.tp_at_100p,
             "auc": self.auc,
+            "unscored_detections": self.unscored,
         }
         if curve:
             out["pr_curve"] = self.curve.to_dict()
@@ -215,9 +219,11 @@ def evaluate_detections(
     tol = _protocol_tolerance(protocol, tolerance)
     q, c, s = _check_detections(n, queries, candidates, scores)
     detected = c >= 0
+    unscored = 0
     if query_mask is not None:
         check_array("query_mask", query_mask, dtype=bool, shape=(n,))
         keep = query_mask[q]
+        unscored = int(np.count_nonzero(detected & ~keep))
         q, c, s, detected = q[keep], c[keep], s[keep], detected[keep]
 
     limit = eligible_limit(n, exclude, exclude_s=exclude_s, times=times)
@@ -249,6 +255,7 @@ def evaluate_detections(
         curve=curve,
         correct=correct,
         detection_frames=dq,
+        unscored=unscored,
     )
 
 

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import StableCuesError
+from ..errors import ConfigError, StableCuesError
 from ..groundtruth import GroundTruth, fit_view, load_ground_truth
 from ..runs import Run
-from .evaluate import evaluate_run
+from .evaluate import evaluate_run, run_evaluations
 from .plots import figure_png, new_figure, plot_matrix, plot_pr_curves, plot_status_counts
 
 logger = logging.getLogger(__name__)
@@ -73,11 +73,11 @@ def choose_evaluation(
 ) -> dict[str, Any] | None:
     """The run's evaluation to show: matching ``protocol`` / ``tolerance`` when given, else the
     exact protocol's, else the first one; None when the run has not been evaluated."""
-    evals = list(run.evaluations().values())
+    evals = list(run_evaluations(run).values())
     if protocol is not None:
         evals = [e for e in evals if e.get("protocol") == protocol]
     if tolerance is not None:
-        evals = [e for e in evals if int(e.get("tolerance", 0)) == tolerance]
+        evals = [e for e in evals if int(e.get("tolerance") or 0) == tolerance]
     if not evals:
         return None
     exact = [e for e in evals if e.get("protocol") == "exact"]
@@ -102,6 +102,7 @@ def _load_gt(
             frames = doc.get("gt_frames")
             cache[key] = fit_view(raw, doc.get("gt_view", "all"), int(frames) if frames is not None else None)
         except StableCuesError as exc:
+            logger.warning("ground truth not shown: %s", exc)
             return None, f"ground truth not shown: {exc}"
     gt = cache[key]
     if doc.get("gt_sha256") and gt.sha256 != doc["gt_sha256"]:
@@ -133,7 +134,10 @@ def build_report(
     """
     out_path = Path(out)
     gt_cache: dict[tuple[str, str], GroundTruth] = {}
+    if protocol is None and tolerance is None:
+        protocol, tolerance = _common_protocol(runs)
     docs = [choose_evaluation(r, protocol, tolerance) for r in runs]
+    _check_one_protocol(runs, docs)
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
@@ -150,6 +154,39 @@ def build_report(
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text("\n".join(parts), encoding="utf-8")
     return out_path
+
+
+def _common_protocol(runs: Sequence[Run]) -> tuple[str | None, int | None]:
+    """A (protocol, tolerance) every evaluated run has, exact first; (None, None) when none."""
+    kinds = [
+        {(str(e["protocol"]), int(e.get("tolerance") or 0)) for e in run_evaluations(r).values()}
+        for r in runs
+    ]
+    kinds = [k for k in kinds if k]
+    common = set.intersection(*kinds) if kinds else set()
+    if not common:
+        return None, None
+    return ("exact", 0) if ("exact", 0) in common else sorted(common)[0]
+
+
+def _check_one_protocol(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> None:
+    """Raise when the evaluations shown were made under different protocols or tolerances: one
+    table and one plot would compare figures that do not compare.
+
+    Raises:
+        ConfigError: naming each run's protocol.
+    """
+    shown = {(d["protocol"], int(d.get("tolerance") or 0)) for d in docs if d is not None}
+    if len(shown) > 1:
+        each = ", ".join(
+            f"{r.name}: {d['protocol']} +-{int(d.get('tolerance') or 0)}"
+            for r, d in zip(runs, docs, strict=True)
+            if d is not None
+        )
+        raise ConfigError(
+            f"the runs were evaluated under different protocols ({each}); choose one with "
+            "--protocol and --tolerance"
+        )
 
 
 def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
@@ -266,7 +303,8 @@ def _matrices_section(run: Run, doc: dict[str, Any] | None, cache: dict[tuple[st
     sim = run.similarity
     gt, note = (None, "") if doc is None else _load_gt(doc, cache)
     if sim is None and gt is None:
-        return "<p class='note'>No similarity matrix and no ground truth to show.</p>"
+        out = "<p class='note'>No similarity matrix and no ground truth to show.</p>"
+        return out + (f"<p class='warn'>{html.escape(note)}</p>" if note else "")
     panels = (sim is not None) + (gt is not None)
     fig, axes = new_figure(5.5 * panels, 5.0, ncols=panels)
     k = 0

@@ -7,15 +7,17 @@
 from __future__ import annotations
 
 import functools
+import math
 import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-import yaml
 
 from ..errors import CalibrationError
+from ..fileio import load_yaml, read_text
+from ..limits import MAX_CALIBRATION_BYTES
 from .camera import Calibration, PinholeCamera, Rectification
 
 _F = TypeVar("_F", bound=Callable[..., Calibration])
@@ -140,7 +142,7 @@ def load_calibration(path: str | Path) -> Calibration:
 
 def _read_text(path: Path) -> str:
     try:
-        return path.read_text(encoding="utf-8", errors="replace")
+        return read_text(path, "calibration file", limit=MAX_CALIBRATION_BYTES, error=CalibrationError)
     except OSError as exc:
         raise CalibrationError(f"cannot read calibration file {path}: {exc}") from exc
 
@@ -151,10 +153,7 @@ def _parse_yaml(text: str, path: Path) -> dict[str, Any]:
     if lines and lines[0].lstrip().startswith("%YAML"):
         lines = lines[1:]
     cleaned = "\n".join(lines).replace("!!opencv-matrix", "")
-    try:
-        data = yaml.safe_load(cleaned)
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}".splitlines()[0]) from exc
+    data = load_yaml(cleaned, path, CalibrationError)
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: expected a YAML mapping at the top level")
     return data
@@ -183,11 +182,35 @@ def _numbers(data: Mapping[str, Any], key: str, path: Path, count: int | None = 
         value = _field(value, "data", path)
     try:
         arr = np.asarray(value, np.float64).ravel()
-    except (TypeError, ValueError) as exc:
-        raise CalibrationError(f"{path}: field {key!r}: expected numbers, got {value!r}") from exc
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(f"{path}: field {key!r}: expected numbers, got {value!r:.60}") from None
+    if not np.isfinite(arr).all():
+        raise CalibrationError(f"{path}: field {key!r}: expected finite numbers, got {value!r:.60}")
     if count is not None and arr.size != count:
         raise CalibrationError(f"{path}: field {key!r}: expected {count} numbers, got {arr.size}")
     return arr
+
+
+def _rigid(t: np.ndarray, path: Path, key: str) -> np.ndarray:
+    """``t`` after checking it is a 4x4 rigid transform (rotation block orthonormal, last row
+    0 0 0 1).
+
+    Raises:
+        CalibrationError: naming the file and the field.
+    """
+    rot = t[:3, :3]
+    ok = np.allclose(rot @ rot.T, np.eye(3), atol=1e-4) and np.allclose(t[3], [0.0, 0.0, 0.0, 1.0])
+    if not ok or not np.linalg.det(rot) > 0:
+        raise CalibrationError(
+            f"{path}: field {key!r}: expected a rigid transform (orthonormal rotation, last row 0 0 0 1)"
+        )
+    return t
+
+
+def _rigid_inverse(t: np.ndarray, path: Path, key: str) -> np.ndarray:
+    """The inverse of the rigid transform ``t`` (checked first: a singular matrix is refused)."""
+    t = _rigid(t, path, key)
+    return np.linalg.inv(t)
 
 
 # --- EuRoC / Kalibr -------------------------------------------------------------------------------
@@ -259,7 +282,7 @@ def load_euroc_stereo(left_path: str | Path, right_path: str | Path) -> Calibrat
         raise CalibrationError(f"right calibration file {right_path} does not exist")
     left, t_bl = _euroc_camera(left_path)
     right, t_br = _euroc_camera(right_path)
-    t_rl = np.linalg.inv(t_br) @ t_bl
+    t_rl = _rigid_inverse(t_br, right_path, "T_BS") @ _rigid(t_bl, left_path, "T_BS")
     return Calibration(
         left=left,
         right=right,
@@ -318,8 +341,12 @@ def _parse_kitti(text: str, path: Path, pair: str = "grey") -> Calibration:
         mats.append(rows[found].reshape(3, 4))
     p_left, p_right = mats
     cam = PinholeCamera.from_matrix(p_left[:, :3])
+    if not np.isfinite(np.stack(mats)).all() or not p_right[0, 0] > 0:
+        raise CalibrationError(
+            f"{path}: {names[1][0]}: expected finite numbers and a focal length > 0, fx = {p_right[0, 0]}"
+        )
     baseline = float((p_left[0, 3] - p_right[0, 3]) / p_right[0, 0])
-    if not baseline > 0:
+    if not (baseline > 0 and math.isfinite(baseline)):
         raise CalibrationError(
             f"{path}: stereo baseline from {names[0][0]}/{names[1][0]} is {baseline}, expected > 0"
         )
@@ -411,7 +438,7 @@ def _parse_orbslam(data: Mapping[str, Any], path: Path) -> Calibration:
     if prefix == "Camera1" and "Camera2.fx" in data and "Stereo.T_c1_c2" in data:
         right = _orb_camera(data, "Camera2", path)
         t_c1_c2 = _numbers(data, "Stereo.T_c1_c2", path, 16).reshape(4, 4)
-        t_c2_c1 = np.linalg.inv(t_c1_c2)
+        t_c2_c1 = _rigid_inverse(t_c1_c2, path, "Stereo.T_c1_c2")
         return Calibration(
             left=cam,
             right=right,

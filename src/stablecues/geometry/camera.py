@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from ..errors import CalibrationError, InputError, check_array
+from ..limits import MAX_IMAGE_PIXELS
 
 __all__ = ["PinholeCamera", "Rectification", "Calibration", "UNDISTORT_CRITERIA"]
 
@@ -68,10 +69,17 @@ class PinholeCamera:
                 f"camera distortion: expected 0, 4 (k1 k2 p1 p2) or 5 (+k3) numbers, "
                 f"got {len(self.distortion)}"
             )
+        if not all(np.isfinite(c) for c in self.distortion):
+            raise CalibrationError(f"camera distortion: expected finite numbers, got {self.distortion}")
         for name in ("width", "height"):
             value = getattr(self, name)
             if value is not None and int(value) <= 0:
                 raise CalibrationError(f"camera {name}: expected a positive size, got {value}")
+        size = self.image_size
+        if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+            raise CalibrationError(
+                f"camera size {size[0]} x {size[1]}: over the {MAX_IMAGE_PIXELS} pixels accepted"
+            )
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the conventional name

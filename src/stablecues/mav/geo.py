@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, MissingDependencyError
 from ..geometry.rotations import quat_conjugate, quat_multiply, quat_normalize, quat_slerp, yaw_of
 
 # NED vector -> ENU vector (a proper rotation: 180 degrees about (1, 1, 0)/sqrt(2)).
@@ -38,7 +38,7 @@ def import_pymap3d() -> Any:
     try:
         import pymap3d
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(f"geodetic conversions need pymap3d: {MAV_EXTRA_HINT}") from exc
+        raise MissingDependencyError(f"geodetic conversions need pymap3d: {MAV_EXTRA_HINT}") from exc
     return pymap3d
 
 

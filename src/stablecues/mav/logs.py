@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import DatasetError, MissingDependencyError, StableCuesError, reason
+from ..fileio import captured_stderr
 from ..geometry.rotations import euler_zyx_to_quat, quat_to_euler_zyx, wxyz_to_xyzw
 from . import geo
 from .flightlog import (
@@ -150,7 +151,8 @@ def _import(module: str) -> Any:
 
             return pyulog
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(f"reading flight logs needs {module}: {geo.MAV_EXTRA_HINT}") from exc
+        package = "pyulog" if module == "pyulog" else "pymavlink"
+        raise MissingDependencyError(f"reading flight logs needs {package}: {geo.MAV_EXTRA_HINT}") from exc
     raise ValueError(module)
 
 
@@ -176,6 +178,7 @@ class _DataflashScan:
     offset: int = 0
     data_len: int = 0
     noise: list[str] = field(default_factory=list)
+    unseen: int = 0
 
     def add(self, name: str, boot: float | None, m: Any) -> None:
         """Book one record of a wanted type."""
@@ -238,7 +241,8 @@ def _scan_dataflash(path: Path, text: bool) -> _DataflashScan:
     """One pass over the log with pymavlink, its console output captured as ``noise``."""
     scan = _DataflashScan()
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    # pymavlink prints from Python and from its compiled indexer (file descriptor 2): keep both
+    with captured_stderr() as printed, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         reader = _open_dataflash(path, text)
         _read_records(reader, scan, err)
         scan.mav_type = reader.mav_type
@@ -250,6 +254,8 @@ def _scan_dataflash(path: Path, text: bool) -> _DataflashScan:
         with contextlib.suppress(Exception):
             reader.filehandle.close()
     scan.noise = [ln for ln in (out.getvalue() + err.getvalue()).splitlines() if ln.strip()]
+    scan.noise += printed.lines
+    scan.unseen = printed.count - len(printed.lines)
     return scan
 
 
@@ -267,8 +273,8 @@ def _dataflash_warnings(scan: _DataflashScan) -> list[str]:
         if bad:
             warn_list.append(f"skipped {bad} bytes of unrecognised data")
         warn_list += rest[:5]
-        if len(rest) > 5:
-            warn_list.append(f"... and {len(rest) - 5} more reader messages")
+        if len(rest) > 5 or scan.unseen:
+            warn_list.append(f"... and {max(len(rest) - 5, 0) + scan.unseen} more reader messages")
     return warn_list
 
 
@@ -338,7 +344,23 @@ def _df_modes(rows: _Rows, t0: float, mav_type: Any) -> tuple[ModeChange, ...]:
     return tuple(changes)
 
 
+# what pymavlink raises when a record's field does not hold what its format says (it converts
+# fields when they are read), and what converting such a field raises here
+_RECORD_ERRORS = (ValueError, TypeError, AttributeError, OverflowError, KeyError, IndexError, struct.error)
+
+
 def _read_dataflash(path: Path, *, text: bool) -> FlightLog:
+    try:
+        return _decode_dataflash(path, text)
+    except StableCuesError:
+        raise
+    except _RECORD_ERRORS as exc:
+        raise DatasetError(
+            f"{path}: a record holds a value its format does not allow ({reason(exc)})"
+        ) from None
+
+
+def _decode_dataflash(path: Path, text: bool) -> FlightLog:
     scan = _scan_dataflash(path, text)
     if scan.first_boot is None or scan.last_boot is None:
         raise DatasetError(f"{path}: not a usable dataflash log: no record with a timestamp was found")
@@ -613,20 +635,48 @@ def _ulog_modes(topics: _Topics, tsec: _Seconds) -> tuple[ModeChange, ...]:
     )
 
 
-def _ulog_info(ulog: Any) -> tuple[str, dict[str, float]]:
-    """The vehicle's description and its parameters (last logged value of each)."""
+def _ulog_info(ulog: Any) -> tuple[str, dict[str, float], list[str]]:
+    """The vehicle's description, its parameters (last logged value of each) and the names of
+    parameters left out because their value is not a number."""
     info = ulog.msg_info_dict
     vehicle = " ".join(str(info[k]) for k in ("sys_name", "ver_hw", "ver_sw_release") if k in info)
-    params = {str(k): float(v) for k, v in ulog.initial_parameters.items()}
-    for _, key, value in ulog.changed_parameters:
-        params[str(key)] = float(value)
-    return vehicle, params
+    params: dict[str, float] = {}
+    changes = [(k, v) for k, v in ulog.initial_parameters.items()]
+    changes += [(key, value) for _, key, value in ulog.changed_parameters]
+    for key, value in changes:
+        number = _param_number(value)
+        if number is not None:
+            params[str(key)] = number
+    skipped = sorted({str(k) for k, v in changes if _param_number(v) is None})
+    return vehicle, params, skipped
+
+
+def _param_number(value: object) -> float | None:
+    """A parameter's value as a number; None for one that is not (raw bytes, text)."""
+    if isinstance(value, bool | np.bool_):
+        return float(value)
+    if isinstance(value, int | float | np.integer | np.floating):
+        return float(value)
+    return None
 
 
 def _read_ulog(path: Path) -> FlightLog:
+    try:
+        return _decode_ulog(path)
+    except StableCuesError:
+        raise
+    except _RECORD_ERRORS as exc:
+        raise DatasetError(
+            f"{path}: a ULog message holds a value its format does not allow ({reason(exc)})"
+        ) from None
+
+
+def _decode_ulog(path: Path) -> FlightLog:
     ulog = _open_ulog(path)
     warn_list, truncated = _ulog_warnings(path, ulog)
     topics, counts = _ulog_topics(ulog)
+    if not topics:
+        raise DatasetError(f"{path}: not a usable ULog: no logged data (only a header and definitions)")
     # pyulog's convention (and the MANIFEST's): the log starts at the header's timestamp; a few
     # topics carry samples stamped before it (negative times here).
     t0_us = int(ulog.start_timestamp)
@@ -642,7 +692,10 @@ def _read_ulog(path: Path) -> FlightLog:
         va = topics["vehicle_attitude"]
         attitude = AttitudeSeries(tsec(va), geo.map_known(quat_to_euler_zyx, _ulog_quat(va), 3))
     onboard, truth = _ulog_solutions(topics, tsec)
-    vehicle, params = _ulog_info(ulog)
+    vehicle, params, skipped = _ulog_info(ulog)
+    if skipped:
+        names = ", ".join(skipped[:3])
+        warn_list.append(f"{len(skipped)} parameters that are not numbers were left out ({names})")
     return FlightLog(
         path=path,
         kind="px4",
@@ -803,6 +856,8 @@ def _read_gnss_csv(path: Path) -> FlightLog:
     if utc_secs is None and iutc is not None:
         u, u_epoch = time_column_seconds(path, header[iutc], col(iutc))
         utc_secs = u if u_epoch else None
+    if not np.isfinite(secs).any():
+        raise DatasetError(f"{path}: GNSS track column {header[main]!r} holds no finite time")
     order = np.argsort(secs, kind="stable")
     t0 = float(np.nanmin(secs))
     t = secs[order] - t0
@@ -810,7 +865,7 @@ def _read_gnss_csv(path: Path) -> FlightLog:
     lon = numbers(path, header[ilon], col(ilon))[order]
     alt = numbers(path, header[ialt], col(ialt))[order] if ialt is not None else np.zeros(len(t))
     n = len(t)
-    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
+    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt) & np.isfinite(t)
     fixes = GnssFixes(
         t=t[ok], lat=lat[ok], lon=lon[ok], alt=alt[ok],
         fix=np.full(int(ok.sum()), 3, np.int16), n_sats=np.full(int(ok.sum()), -1, np.int16),
@@ -829,7 +884,7 @@ def _read_gnss_csv(path: Path) -> FlightLog:
         path=path,
         kind="gnss_csv",
         vehicle="",
-        duration=float(t[-1]) if n else 0.0,
+        duration=float(np.nanmax(t)) if n else 0.0,
         boot_time_offset=boot_offset,
         utc_offset=utc_offset,
         counts={"GNSS": int(ok.sum())},

@@ -19,10 +19,12 @@ from typing import Any
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.cm import ScalarMappable
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
+from ..limits import MAX_PLOTTED_LOOP_PAIRS
 from .flightlog import FlightLog, ModeSpan, NavSolution
 
 # Fixed colours for the usual modes (ArduPilot names; PX4 names map onto the closest one).
@@ -346,33 +348,91 @@ def save_flight_figures(
     return paths
 
 
+_MATRIX_PIXELS = 1024  # a loop matrix is drawn pooled to at most this many cells a side
+
+
 def plot_loop_matrix(ax: Axes, gt: np.ndarray) -> None:
-    """The loop ground-truth matrix: query frame i (rows) against earlier frame j (columns)."""
+    """The loop ground-truth matrix: query frame i (rows) against earlier frame j (columns).
+
+    A matrix of more than 1024 frames a side is drawn pooled (a cell is dark when any pair in
+    it is a loop), so the picture costs the same memory whatever the trajectory's length.
+    """
     n = gt.shape[0]
     ax.imshow(
-        gt, cmap="Greys", interpolation="nearest", vmin=0, vmax=1, extent=(-0.5, n - 0.5, n - 0.5, -0.5)
+        _pooled(gt, _MATRIX_PIXELS),
+        cmap="Greys",
+        interpolation="nearest",
+        vmin=0,
+        vmax=1,
+        extent=(-0.5, n - 0.5, n - 0.5, -0.5),
     )
     ax.set_xlabel("earlier frame j")
     ax.set_ylabel("query frame i")
     ax.set_title(f"loop ground truth: {int(gt.sum())} pairs, {int(gt.any(axis=1).sum())} query frames")
 
 
+def _pooled(gt: np.ndarray, cells: int) -> np.ndarray:
+    """(m, m) bool ``any`` over square blocks of ``gt``, m <= ``cells``; ``gt`` itself if small."""
+    n = gt.shape[0]
+    if n <= cells:
+        return gt
+    f = -(-n // cells)
+    starts = np.arange(0, n, f)
+    out = np.zeros((starts.size, starts.size), dtype=bool)
+    for k, a in enumerate(starts):
+        out[k] = np.logical_or.reduceat(gt[a : a + f].any(axis=0), starts)
+    return out
+
+
+def loop_pairs_sample(
+    gt: np.ndarray, limit: int = MAX_PLOTTED_LOOP_PAIRS
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """At most ``limit`` loop pairs of ``gt``, evenly spread over all of them in row order.
+
+    Works a block of rows at a time, so all pairs are never held at once.
+
+    Returns:
+        ((K,) int64 rows i, (K,) int64 columns j, the number of pairs in ``gt``).
+    """
+    n = gt.shape[0]
+    total = int(np.count_nonzero(gt))
+    step = max(1, -(-total // max(limit, 1)))
+    block = max(1, (1 << 22) // max(n, 1))
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    seen = 0
+    for start in range(0, n, block):
+        r, c = np.nonzero(gt[start : start + block])
+        keep = (np.arange(seen, seen + r.size) % step) == 0
+        rows.append(r[keep] + start)
+        cols.append(c[keep])
+        seen += r.size
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), total
+    return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), total
+
+
 def plot_loops_on_trajectory(
     ax: Axes, positions: np.ndarray, gt: np.ndarray, *, names: Sequence[str] | None = None
 ) -> None:
-    """Camera positions (east/north) with a line for every loop pair."""
+    """Camera positions (east/north) with a line for every loop pair (one line collection; at
+    most :data:`stablecues.limits.MAX_PLOTTED_LOOP_PAIRS` pairs, evenly spread, are drawn and the
+    title says so)."""
     p = np.asarray(positions, dtype=np.float64)
     ax.plot(p[:, 0], p[:, 1], color="0.6", lw=0.8, zorder=1)
     ax.scatter(p[:, 0], p[:, 1], c=np.arange(len(p)), cmap="viridis", s=12, zorder=2)
-    for i, j in zip(*np.nonzero(gt), strict=True):
-        ax.plot([p[i, 0], p[j, 0]], [p[i, 1], p[j, 1]], color="tab:red", lw=1.2, zorder=3)
+    rows, cols, total = loop_pairs_sample(gt)
+    if rows.size:
+        segments = np.stack([p[rows, :2], p[cols, :2]], axis=1)
+        ax.add_collection(LineCollection(list(segments), colors="tab:red", linewidths=1.2, zorder=3))
     if names is not None and len(names) == len(p) and len(p) <= 60:
         for k, name in enumerate(names):
             ax.annotate(name, (p[k, 0], p[k, 1]), fontsize=6, xytext=(2, 2), textcoords="offset points")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
-    ax.set_title("poses and loop pairs")
+    drawn = f" ({rows.size} of {total} drawn)" if rows.size < total else ""
+    ax.set_title(f"poses and loop pairs{drawn}")
     ax.legend(handles=[Line2D([], [], color="tab:red", label="loop pair")], loc="best", fontsize="small")
 
 
@@ -397,6 +457,7 @@ __all__ = [
     "plot_altitude",
     "plot_attitude",
     "plot_loop_matrix",
+    "loop_pairs_sample",
     "plot_loops_on_trajectory",
     "plot_position_panels",
     "plot_trajectory",

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
+from ..fileio import read_text
+from ..limits import MAX_CSV_FIELD_BYTES
 
 # Seconds after 1973-03-03: anything later is taken as a UNIX (UTC) time, anything earlier as
 # a time since boot. No autopilot or camera runs 3.4 years without a restart.
@@ -41,7 +43,7 @@ def read_csv_table(path: Path, what: str) -> tuple[list[str], list[list[str]]]:
     """
     if not path.is_file():
         raise DatasetError(f"{path}: {what} not found")
-    text = path.read_text(encoding="utf-8-sig", errors="replace")
+    text = read_text(path, what, encoding="utf-8-sig")
     lines = [ln for ln in text.splitlines() if ln.strip()]
     if not lines:
         raise DatasetError(f"{path}: {what} is empty, expected a header row and data rows")
@@ -49,7 +51,12 @@ def read_csv_table(path: Path, what: str) -> tuple[list[str], list[list[str]]]:
         dialect: type[csv.Dialect] | csv.Dialect = csv.Sniffer().sniff(lines[0], delimiters=",;\t")
     except csv.Error:
         dialect = csv.excel
-    rows = list(csv.reader(lines, dialect))
+    try:
+        rows = list(csv.reader(lines, dialect))
+    except csv.Error as exc:  # a field over the csv module's limit, a stray quote
+        raise DatasetError(
+            f"{path}: {what} is not a readable CSV table ({exc}; a field holds at most {MAX_CSV_FIELD_BYTES})"
+        ) from None
     header = [h.strip().lstrip("#").strip() for h in rows[0]]
     body = [[c.strip() for c in r] for r in rows[1:]]
     for k, r in enumerate(body):

@@ -12,13 +12,22 @@ Files of a run directory::
                      stage times in milliseconds, nan when the stage did not run)
     extra.jsonl      optional, one JSON object per line {"frame": i, ...} with per-frame extras
     similarity.npy   optional (N, N) float32: score of query i against earlier frame j,
-                     0 where not computed (may cover only a prefix of an interrupted run)
+                     0 where not computed; written on close from
+    similarity.rows  the rows as they were computed (row i: i float32 values), appended frame
+                     by frame while the run is open, so an interrupted run keeps every row
+    pending.json     while a frame is being written: its decision, journalled before the
+                     caller's own commit (the detector's map), replayed or dropped on resume
     timings.json     {stage: {mean, std, min, max, count}} in ms, written on close
     matches/*.png    optional match pictures of sample loops
     eval_<protocol>.json   written by ``stablecues eval``
 
 Rows are flushed one at a time, so a killed run leaves a readable prefix (a partial last line
-is dropped on reading); :class:`RunWriter` with ``mode="resume"`` continues such a run.
+is dropped on reading); :class:`RunWriter` with ``mode="resume"`` and :meth:`RunWriter.reconcile`
+continue such a run, wherever it was killed, to what an uninterrupted run writes.
+
+A run directory's files are its own: none is read, written or deleted through a symbolic link
+(or appended to when it has other hard links), temporary files are created afresh, and
+replacing a run deletes only the files listed here.
 """
 
 from __future__ import annotations
@@ -32,15 +41,16 @@ import math
 import os
 import platform
 import re
-import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from ..errors import DatasetError, InputError
+from ..errors import DatasetError, InputError, reason
+from ..fileio import read_npy, read_text
+from ..limits import MAX_TEXT_BYTES, check_file_size
 from .timing import timing_table
 
 logger = logging.getLogger(__name__)
@@ -49,12 +59,17 @@ BASE_COLUMNS = ("frame", "timestamp", "status", "candidate", "score", "raw_score
 DECISIONS = "decisions.csv"
 EXTRA = "extra.jsonl"
 SIMILARITY = "similarity.npy"
+SIMILARITY_ROWS = "similarity.rows"
+PENDING = "pending.json"
 CONFIG = "config.json"
 META = "meta.json"
 TIMINGS = "timings.json"
 MATCHES = "matches"
 _STAGE_RE = re.compile(r"^t_(.+)_ms$")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+# every file a run writes: none of them may be a symbolic link
+RUN_FILES = (CONFIG, META, DECISIONS, EXTRA, SIMILARITY, SIMILARITY_ROWS, TIMINGS, PENDING, MATCHES)
 
 
 def versions() -> dict[str, str]:
@@ -100,24 +115,48 @@ def _json_safe(value: Any) -> Any:
 
 
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
-    """Write strict JSON atomically (temporary file, then rename)."""
+    """Write strict JSON atomically (temporary file, then rename).
+
+    The temporary file is created afresh (a file or link planted under its name is removed
+    first, never written through), and the rename replaces ``path`` itself, not what a
+    symbolic link there points to.
+    """
+    text = json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n"
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        fh.write(text)
     os.replace(tmp, path)
 
 
-def read_json(path: Path, what: str) -> dict[str, Any]:
-    """Read a JSON object file.
+def own_file(path: Path, what: str) -> Path:
+    """``path``, after checking it is not a symbolic link: a run directory's files lie in it.
 
     Raises:
-        DatasetError: missing file, invalid JSON, or not an object.
+        DatasetError: ``path`` is a symbolic link.
     """
+    if path.is_symlink():
+        raise DatasetError(
+            f"{path}: {what} is a symbolic link; a run directory's files must lie in it (not followed)"
+        )
+    return path
+
+
+def read_json(path: Path, what: str) -> dict[str, Any]:
+    """Read a JSON object file (not through a symbolic link).
+
+    Raises:
+        DatasetError: missing file, a symbolic link, invalid JSON, or not an object.
+    """
+    own_file(path, what)
     if not path.is_file():
         raise DatasetError(f"{path}: {what} not found")
+    check_file_size(path, MAX_TEXT_BYTES, what)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: {what} is not valid JSON ({exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise DatasetError(f"{path}: {what} is not valid JSON ({reason(exc)})") from None
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: {what} should be a JSON object, found {type(data).__name__}")
     return data
@@ -125,6 +164,20 @@ def read_json(path: Path, what: str) -> dict[str, Any]:
 
 def _fmt(value: float) -> str:
     return "nan" if not math.isfinite(value) else repr(float(value))
+
+
+def _open_append(path: Path, what: str) -> io.TextIOWrapper:
+    """Open one of the run's own files for appending: never through a symbolic link, never a file
+    with other hard links (appending would change a file outside the run)."""
+    own_file(path, what)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW, 0o644)
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot open {what} for writing ({reason(exc)})") from None
+    if os.fstat(fd).st_nlink > 1:
+        os.close(fd)
+        raise DatasetError(f"{path}: {what} has other hard links; a run directory's files must be its own")
+    return open(fd, "a", encoding="utf-8", newline="")  # noqa: SIM115 - the writer keeps it open
 
 
 class RunWriter:
@@ -138,12 +191,17 @@ class RunWriter:
             ``stablecues eval --exclude``); versions and times are added.
         stages: the stage names of the timing columns, in order; None takes the stages of the
             first row. A later row naming another stage raises :class:`InputError`.
-        mode: "new" (refuse a directory that already holds a run), "overwrite" (delete the
-            previous run's files first) or "resume" (append to the run found there, keeping
-            its rows; see :attr:`next_frame`).
+        mode: "new" (refuse a directory that exists and is not empty), "overwrite" (delete the
+            previous run's own files first; refuse a non-empty directory that holds no run) or
+            "resume" (append to the run found there, keeping its rows; see :attr:`next_frame`
+            and :meth:`reconcile`).
+
+    A run directory's files are its own: none may be a symbolic link (nothing outside the
+    directory is read, written, followed or deleted).
 
     Raises:
-        DatasetError: ``mode="new"`` on an existing run, or an unreadable run to resume.
+        DatasetError: ``mode="new"`` on an existing directory, an unreadable run to resume, or
+            a run file that is a symbolic link.
     """
 
     def __init__(
@@ -158,7 +216,12 @@ class RunWriter:
         self.path = Path(out_dir)
         if mode not in ("new", "overwrite", "resume"):
             raise InputError(f"mode: expected 'new', 'overwrite' or 'resume', got {mode!r}")
+        _check_out_dir(self.path, mode)
         self.path.mkdir(parents=True, exist_ok=True)
+        if mode == "overwrite":
+            self._clear()  # links among the old run's files are removed, never followed
+        for name in RUN_FILES:
+            own_file(self.path / name, "run file")
         decisions = self.path / DECISIONS
         self._stages: list[str] | None = list(stages) if stages is not None else None
         self._times: dict[str, list[float]] = {}
@@ -166,20 +229,16 @@ class RunWriter:
         self._rows = 0
         self._closed = False
         prior_meta: dict[str, Any] = {}
-        if mode == "new" and decisions.exists():
-            raise DatasetError(f"{self.path}: already holds a run ({DECISIONS}); overwrite or resume it")
-        if mode == "overwrite" or (mode == "resume" and not decisions.exists()):
-            self._clear()
+        if mode == "resume" and not decisions.exists():
+            self._clear(keep=(PENDING, SIMILARITY_ROWS))  # a run killed in its first frame
         if mode == "resume" and decisions.exists():
+            _truncate_partial_line(decisions)
             run = load_run(self.path)
             self._stages = list(run.stage_ms)
             self._times = {k: v.tolist() for k, v in run.stage_ms.items()}
             self._last_frame = int(run.frames[-1]) if len(run) else -1
             self._rows = len(run)
             prior_meta = run.meta
-            _truncate_partial_line(decisions)
-            if (self.path / EXTRA).exists():
-                _truncate_partial_line(self.path / EXTRA)
         write_json(self.path / CONFIG, dict(config))
         self.meta: dict[str, Any] = {
             **prior_meta,
@@ -188,12 +247,14 @@ class RunWriter:
             "created": prior_meta.get("created", _now()),
             "complete": False,
         }
+        self.meta.pop("finished", None)
         if prior_meta:
             self.meta["resumed"] = [*prior_meta.get("resumed", []), _now()]
         write_json(self.path / META, self.meta)
         self._csv: io.TextIOWrapper | None = None
-        self._writer: Any = None
         self._extra: io.TextIOWrapper | None = None
+        self._sim: io.BufferedWriter | None = None
+        self._reconciled = mode != "resume"
         if mode == "resume" and decisions.exists():
             self._open_csv(write_header=False)
 
@@ -209,6 +270,11 @@ class RunWriter:
         """The timing stages, once known."""
         return None if self._stages is None else list(self._stages)
 
+    @property
+    def rows(self) -> int:
+        """Rows written so far (with those of the run resumed)."""
+        return self._rows
+
     def add(
         self,
         frame_index: int,
@@ -220,6 +286,9 @@ class RunWriter:
         accepted: bool,
         stage_ms: Mapping[str, float],
         extra: Mapping[str, Any] | None = None,
+        *,
+        similarity: np.ndarray | None = None,
+        commit: Callable[[], Mapping[str, float]] | None = None,
     ) -> None:
         """Append one frame's decision and flush it to disk.
 
@@ -233,6 +302,12 @@ class RunWriter:
             accepted: whether the detector accepted the loop.
             stage_ms: milliseconds per stage for this frame (missing stages are written NaN).
             extra: per-frame extras (JSON-serialisable), appended to ``extra.jsonl``.
+            similarity: (frame_index,) float scores of this frame against frames 0 .. i-1,
+                appended to ``similarity.rows`` (frames must then run 0, 1, 2, ...); None for none.
+            commit: called once the decision is journalled (``pending.json``) and before its
+                row is written: the caller's own durable step (the detector's database
+                commit). It returns milliseconds to add to stages of this row. A process
+                killed between the two leaves a journal that :meth:`reconcile` replays.
 
         Raises:
             InputError: a frame index not after the previous one, a candidate that is not an
@@ -240,13 +315,48 @@ class RunWriter:
         """
         if self._closed:
             raise InputError(f"{self.path}: run writer is closed")
+        if not self._reconciled:
+            self.reconcile(None)
         frame_index = int(frame_index)
+        candidate = int(candidate)
+        status = str(status)
+        self._check_row(frame_index, candidate, status, stage_ms, similarity)
+        times = {k: float(stage_ms.get(k, math.nan)) for k in self._stages or []}
+        row = [
+            str(frame_index),
+            _fmt(timestamp),
+            status,
+            str(candidate),
+            _fmt(score),
+            _fmt(raw_score),
+            "1" if accepted else "0",
+        ]
+        extra_line = None
+        if extra:
+            extra_line = json.dumps(_json_safe({"frame": frame_index, **extra}))
+        if similarity is not None:
+            self._append_similarity(frame_index, similarity)
+        if commit is not None:
+            write_json(self.path / PENDING, {"row": row, "times": times, "extra": extra_line})
+            for k, ms in commit().items():
+                if k in times:
+                    times[k] = times[k] + float(ms) if math.isfinite(times[k]) else float(ms)
+        self._write_row(frame_index, row, times, extra_line)
+        if commit is not None:
+            (self.path / PENDING).unlink(missing_ok=True)
+
+    def _check_row(
+        self,
+        frame_index: int,
+        candidate: int,
+        status: str,
+        stage_ms: Mapping[str, float],
+        similarity: np.ndarray | None,
+    ) -> None:
         if frame_index <= self._last_frame:
             raise InputError(f"frame {frame_index}: expected a frame after {self._last_frame}")
-        candidate = int(candidate)
         if candidate < -1 or candidate >= frame_index:
             raise InputError(f"frame {frame_index}: candidate {candidate} is not an earlier frame (or -1)")
-        status = str(status)
         if not status or any(ch in status for ch in ',\n\r"'):
             raise InputError(
                 f'frame {frame_index}: status {status!r} must be non-empty without , " or newlines'
@@ -259,31 +369,137 @@ class RunWriter:
                 f"frame {frame_index}: stage {unknown[0]!r} not among the run's stages {self._stages}; "
                 "declare every stage when creating the RunWriter"
             )
+        if similarity is not None and frame_index != self._rows:
+            raise InputError(
+                f"frame {frame_index}: similarity rows need frames 0, 1, 2, ... (expected {self._rows})"
+            )
+
+    def _write_row(
+        self, frame_index: int, row: list[str], times: Mapping[str, float], extra: str | None
+    ) -> None:
+        """The extras line, then the CSV row (the run's commit record), both flushed."""
+        if extra is not None:
+            if self._extra is None:
+                self._extra = _open_append(self.path / EXTRA, "per-frame extras")
+            self._extra.write(extra + "\n")
+            self._extra.flush()
         if self._csv is None:
             self._open_csv(write_header=True)
-        times = [float(stage_ms.get(k, math.nan)) for k in self._stages]
-        row = [
-            str(frame_index),
-            _fmt(timestamp),
-            status,
-            str(candidate),
-            _fmt(score),
-            _fmt(raw_score),
-            "1" if accepted else "0",
-            *(_fmt(t) for t in times),
-        ]
         assert self._csv is not None
-        self._csv.write(",".join(row) + "\n")
+        values = [float(times.get(k, math.nan)) for k in self._stages or []]
+        self._csv.write(",".join([*row, *(_fmt(t) for t in values)]) + "\n")
         self._csv.flush()
-        for k, t in zip(self._stages, times, strict=True):
+        for k, t in zip(self._stages or [], values, strict=True):
             self._times.setdefault(k, []).append(t)
-        if extra:
-            if self._extra is None:
-                self._extra = (self.path / EXTRA).open("a", encoding="utf-8")
-            self._extra.write(json.dumps(_json_safe({"frame": frame_index, **extra})) + "\n")
-            self._extra.flush()
         self._last_frame = frame_index
         self._rows += 1
+
+    def _append_similarity(self, frame_index: int, row: np.ndarray) -> None:
+        values = np.zeros(frame_index, np.float32)
+        r = np.asarray(row, dtype=np.float32).ravel()[:frame_index]
+        values[: r.size] = np.nan_to_num(r, nan=0.0)
+        if self._sim is None:
+            path = own_file(self.path / SIMILARITY_ROWS, "similarity rows")
+            if not path.is_file() and frame_index > 0:
+                self._rows_from_matrix(path, frame_index)
+            have = path.stat().st_size if path.is_file() else 0
+            if have != 4 * (frame_index * (frame_index - 1) // 2):
+                raise DatasetError(
+                    f"{path}: holds {have} bytes, not the similarity rows of frames 0..{frame_index - 1}; "
+                    "this run cannot continue its similarity matrix (start it again, or turn similarity off)"
+                )
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW, 0o644)
+            self._sim = open(fd, "ab")  # noqa: SIM115 - the writer keeps it open
+        self._sim.write(values.tobytes())
+        self._sim.flush()
+
+    def _rows_from_matrix(self, path: Path, n: int) -> None:
+        """The similarity rows of frames 0..n-1 from ``similarity.npy`` (a closed run being
+        continued keeps its matrix, not its rows), when the matrix covers them."""
+        matrix_path = own_file(self.path / SIMILARITY, "similarity matrix")
+        if not matrix_path.is_file():
+            return
+        m = read_npy(matrix_path, "similarity matrix", mmap=True)
+        if m.ndim != 2 or m.shape[0] < n or m.shape[1] < n:
+            return
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as fh:
+            for i in range(1, n):
+                fh.write(np.asarray(m[i, :i], dtype=np.float32).tobytes())
+        os.replace(tmp, path)
+
+    def reconcile(self, committed: int | None = None) -> int:
+        """Bring a resumed run in line with the caller's durable state after a kill anywhere.
+
+        The CSV rows are the run's record. A journalled frame (``pending.json``) is replayed
+        when ``committed`` (the number of frames the caller's own store holds, e.g. the
+        detector's map) says its commit happened, and dropped otherwise; extras and similarity
+        rows written past the last row are dropped.
+
+        Args:
+            committed: frames the caller's store holds; None when there is none (the
+                journal is then dropped).
+
+        Returns:
+            The frame to continue from (:attr:`next_frame`).
+
+        Raises:
+            DatasetError: the store and the rows disagree by more than the journalled frame.
+        """
+        pending = self.path / PENDING
+        if own_file(pending, "pending decision").is_file():
+            journal = _read_journal(pending, len(BASE_COLUMNS))
+            if journal is not None and journal[0] == self.next_frame and committed == self._rows + 1:
+                frame, row, times, extra = journal
+                self._trim_after(frame, frame + 1)  # its similarity row was written before it
+                # the commit's own time was not recorded: add and total are unknown for this frame
+                times = {k: math.nan if k in ("add", "total") else v for k, v in times.items()}
+                self._write_row(frame, row, times, extra)
+                logger.warning("%s: frame %d was committed, its row not written: replayed", self.path, frame)
+            pending.unlink()
+        self._trim_after(self.next_frame)
+        self._reconciled = True
+        if committed is not None and committed != self._rows:
+            raise DatasetError(
+                f"{self.path}: the map holds {committed} frames but {DECISIONS} has {self._rows}; "
+                "cannot resume this run (start it again without --resume)"
+            )
+        return self.next_frame
+
+    def _trim_after(self, frame: int, similarity_rows: int | None = None) -> None:
+        """Drop extras of frames >= ``frame`` and similarity rows past the first
+        ``similarity_rows`` (default ``frame``): what was written past the last row.
+
+        Raises:
+            DatasetError: the similarity rows stop short of the decisions.
+        """
+        extra = own_file(self.path / EXTRA, "per-frame extras")
+        if extra.is_file():
+            _truncate_partial_line(extra)
+            data = extra.read_bytes()
+            keep = 0
+            for line in data.splitlines(keepends=True):
+                try:
+                    f = int(json.loads(line).get("frame", -1))
+                except (json.JSONDecodeError, AttributeError, TypeError, ValueError, UnicodeDecodeError):
+                    break
+                if f >= frame:
+                    break
+                keep += len(line)
+            if keep < len(data):
+                with extra.open("r+b") as fh:
+                    fh.truncate(keep)
+        rows = own_file(self.path / SIMILARITY_ROWS, "similarity rows")
+        if rows.is_file():
+            k = frame if similarity_rows is None else similarity_rows
+            size = 4 * (k * (k - 1) // 2)
+            if rows.stat().st_size > size:
+                with rows.open("r+b") as fh:
+                    fh.truncate(size)
+            elif rows.stat().st_size < size:
+                raise DatasetError(f"{rows}: holds fewer similarity rows than {DECISIONS} has frames ({k})")
 
     def set_similarity(self, matrix: np.ndarray) -> None:
         """Save the (N, N) similarity matrix as float32 ``similarity.npy`` (atomic; may repeat).
@@ -298,7 +514,27 @@ class RunWriter:
         if m.ndim != 2 or m.shape[0] != m.shape[1] or m.dtype.kind not in "biuf":
             raise InputError(f"similarity: expected a square N x N numeric matrix, got {m.shape} {m.dtype}")
         tmp = self.path / (SIMILARITY + ".tmp.npy")
-        np.save(tmp, np.nan_to_num(m.astype(np.float32, copy=False), nan=0.0))
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, np.nan_to_num(m.astype(np.float32, copy=False), nan=0.0))
+        os.replace(tmp, self.path / SIMILARITY)
+
+    def _similarity_from_rows(self) -> None:
+        """Write ``similarity.npy`` (N x N float32) from the appended rows, one row at a time."""
+        rows = self.path / SIMILARITY_ROWS
+        n = self._rows
+        tmp = self.path / (SIMILARITY + ".tmp.npy")
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as out, rows.open("rb") as src:
+            np.lib.format.write_array_header_1_0(
+                out, {"descr": "<f4", "fortran_order": False, "shape": (n, n)}
+            )
+            for i in range(n):
+                line = np.zeros(n, np.float32)
+                line[:i] = np.frombuffer(src.read(4 * i), np.float32, count=i) if i else line[:0]
+                out.write(line.tobytes())
         os.replace(tmp, self.path / SIMILARITY)
 
     def add_match_picture(self, name: str, png: str | Path | np.ndarray) -> Path:
@@ -316,7 +552,7 @@ class RunWriter:
         """
         if not _NAME_RE.match(name):
             raise InputError(f"match picture name {name!r}: use letters, digits, '_', '.', '-'")
-        folder = self.path / MATCHES
+        folder = own_file(self.path / MATCHES, "match pictures folder")
         folder.mkdir(exist_ok=True)
         dest = folder / (name if name.endswith(".png") else name + ".png")
         if isinstance(png, np.ndarray):
@@ -327,26 +563,33 @@ class RunWriter:
             ok, buf = cv2.imencode(".png", png)
             if not ok:
                 raise InputError(f"match picture {name}: could not encode an image of shape {png.shape}")
-            dest.write_bytes(buf.tobytes())
+            data = buf.tobytes()
         else:
             src = Path(png)
             if not src.is_file():
                 raise InputError(f"{src}: match picture not found")
-            shutil.copyfile(src, dest)
+            data = src.read_bytes()
+        own_file(dest, "match picture").unlink(missing_ok=True)
+        fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
         return dest
 
     def close(self) -> None:
-        """Write ``timings.json`` and mark the run complete in ``meta.json``."""
+        """Write ``timings.json`` (and ``similarity.npy`` from its rows) and mark the run complete."""
         if self._closed:
             return
         if self._csv is None and self._stages is not None:
             self._open_csv(write_header=True)  # an empty run still has a header
-        for handle in (self._csv, self._extra):
+        for handle in (self._csv, self._extra, self._sim):
             if handle is not None:
                 handle.flush()
                 os.fsync(handle.fileno())
                 handle.close()
         self._closed = True
+        if (self.path / SIMILARITY_ROWS).is_file():
+            self._similarity_from_rows()
+            (self.path / SIMILARITY_ROWS).unlink()  # the matrix holds them now
         arrays = {k: np.asarray(v, dtype=np.float64) for k, v in self._times.items()}
         write_json(self.path / TIMINGS, timing_table(arrays))
         self.meta.update({"finished": _now(), "frames_written": self._rows, "complete": True})
@@ -361,23 +604,76 @@ class RunWriter:
     # -- helpers ------------------------------------------------------------------------------
 
     def _open_csv(self, *, write_header: bool) -> None:
-        self._csv = (self.path / DECISIONS).open("a", encoding="utf-8", newline="")
+        self._csv = _open_append(self.path / DECISIONS, "per-frame decisions")
         if write_header:
             stages = self._stages or []
             self._csv.write(",".join([*BASE_COLUMNS, *(f"t_{s}_ms" for s in stages)]) + "\n")
             self._csv.flush()
 
-    def _clear(self) -> None:
-        for name in (DECISIONS, EXTRA, SIMILARITY, TIMINGS):
-            (self.path / name).unlink(missing_ok=True)
+    def _clear(self, keep: tuple[str, ...] = ()) -> None:
+        """Delete the run's own files (never a file of the user's, never through a link)."""
+        for name in (DECISIONS, EXTRA, SIMILARITY, SIMILARITY_ROWS, TIMINGS, PENDING):
+            if name not in keep:
+                (self.path / name).unlink(missing_ok=True)
         for p in self.path.glob("eval_*.json"):
             p.unlink()
-        if (self.path / MATCHES).is_dir():
-            shutil.rmtree(self.path / MATCHES)
+        folder = self.path / MATCHES
+        if folder.is_symlink():
+            folder.unlink()
+        elif folder.is_dir():
+            for p in folder.glob("*.png"):
+                if p.is_symlink() or p.is_file():
+                    p.unlink()
+            if not any(folder.iterdir()):
+                folder.rmdir()
+
+
+def _read_journal(
+    path: Path, width: int
+) -> tuple[int, list[str], dict[str, float], str | None] | None:
+    """(frame, row fields, stage times, extras line) of ``pending.json``; None when malformed."""
+    try:
+        doc = read_json(path, "pending decision")
+    except DatasetError:
+        return None
+    row, times, extra = doc.get("row"), doc.get("times"), doc.get("extra")
+    if not isinstance(row, list) or len(row) != width or not isinstance(times, dict):
+        return None
+    if not str(row[0]).isdigit() or not (extra is None or isinstance(extra, str)):
+        return None
+    try:
+        stage_ms = {str(k): math.nan if v is None else float(v) for k, v in times.items()}
+    except (TypeError, ValueError):
+        return None
+    return int(row[0]), [str(v) for v in row], stage_ms, extra
+
+
+def _check_out_dir(path: Path, mode: str) -> None:
+    """Refuse an output directory that ``mode`` may not use.
+
+    Raises:
+        DatasetError: "new" on a directory that exists and is not empty; "overwrite" or
+            "resume" on a non-empty directory that holds no run; a path that is not a directory.
+    """
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise DatasetError(f"{path}: exists and is not a directory")
+    if not any(path.iterdir()):
+        return
+    holds_run = any(os.path.lexists(path / name) for name in (DECISIONS, META, CONFIG))
+    if mode == "new":
+        if (path / DECISIONS).exists():
+            raise DatasetError(f"{path}: already holds a run ({DECISIONS}); overwrite or resume it")
+        raise DatasetError(f"{path}: exists and is not empty; choose a new run directory (or overwrite it)")
+    if not holds_run:
+        raise DatasetError(
+            f"{path}: not empty and holds no run (no {DECISIONS}, {META}); refusing to {mode} it"
+        )
 
 
 def _truncate_partial_line(path: Path) -> None:
-    data = path.read_bytes()
+    data = own_file(path, "run file").read_bytes()
     if data and not data.endswith(b"\n"):
         cut = data.rfind(b"\n") + 1
         with path.open("r+b") as fh:
@@ -439,17 +735,41 @@ class Run:
 
     @property
     def matches(self) -> list[Path]:
-        """Match pictures, sorted by name."""
+        """Match pictures, sorted by name: regular files in ``matches/`` only (a symbolic link,
+        which could point anywhere, is left out with a warning)."""
         folder = self.path / MATCHES
-        return sorted(folder.glob("*.png")) if folder.is_dir() else []
+        if folder.is_symlink() or not folder.is_dir():
+            if folder.is_symlink():
+                logger.warning("%s: is a symbolic link; its pictures are not shown", folder)
+            return []
+        out = []
+        for p in sorted(folder.glob("*.png")):
+            if p.is_symlink() or not p.is_file():
+                logger.warning("%s: not a regular file in the run (a symbolic link?); left out", p)
+                continue
+            out.append(p)
+        return out
+
+    def meta_int(self, key: str, default: int | None = None) -> int | None:
+        """``meta.json``'s integer ``key`` (``default`` when absent or null).
+
+        Raises:
+            DatasetError: the value is not a whole number.
+        """
+        value = self.meta.get(key)
+        if value is None:
+            return default
+        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+            raise DatasetError(f"{self.path / META}: {key!r} should be a whole number, found {value!r:.40}")
+        return int(value)
 
     def extra(self) -> list[dict[str, Any]]:
         """Rows of ``extra.jsonl`` (empty when there is none); a partial last line is dropped."""
-        p = self.path / EXTRA
+        p = own_file(self.path / EXTRA, "per-frame extras")
         if not p.is_file():
             return []
         out = []
-        lines = p.read_text(encoding="utf-8").splitlines()
+        lines = read_text(p, "per-frame extras").splitlines()
         for lineno, line in enumerate(lines, 1):
             try:
                 out.append(json.loads(line))
@@ -461,9 +781,13 @@ class Run:
 
     def timings(self) -> dict[str, dict[str, Any]]:
         """The per-stage timing table (from ``timings.json``, else computed from the rows)."""
-        p = self.path / TIMINGS
+        p = own_file(self.path / TIMINGS, "timings")
         if p.is_file() and self.complete:
-            return read_json(p, "timings")
+            table = read_json(p, "timings")
+            for stage, row in table.items():
+                if not _is_timing_row(row):
+                    raise DatasetError(f"{p}: stage {stage!r} should map to numbers (mean, std, ...)")
+            return table
         return timing_table(self.stage_ms)
 
     def status_counts(self) -> dict[str, int]:
@@ -530,9 +854,10 @@ def _decision_lines(decisions: Path) -> tuple[list[str], bool]:
     Raises:
         DatasetError: the file is missing or holds no header.
     """
+    own_file(decisions, "per-frame decisions")
     if not decisions.is_file():
         raise DatasetError(f"{decisions}: per-frame decisions not found")
-    text = decisions.read_text(encoding="utf-8")
+    text = read_text(decisions, "per-frame decisions")
     truncated = bool(text) and not text.endswith("\n")
     lines = text.split("\n")
     if truncated:
@@ -550,7 +875,10 @@ def _stage_columns(decisions: Path, header_line: str) -> list[str]:
     Raises:
         DatasetError: a header not starting with the base columns, or another column name.
     """
-    header = next(csv.reader([header_line]))
+    try:
+        header = next(csv.reader([header_line]))
+    except csv.Error as exc:
+        raise DatasetError(f"{decisions}: the header line is not CSV ({exc})") from None
     if tuple(header[: len(BASE_COLUMNS)]) != BASE_COLUMNS:
         raise DatasetError(
             f"{decisions}: expected the header to start {','.join(BASE_COLUMNS)}, found {header_line[:80]}"
@@ -621,12 +949,10 @@ def _check_frame_order(decisions: Path, frames: np.ndarray, cands: np.ndarray) -
 
 
 def _load_similarity(path: Path, frames: np.ndarray) -> np.ndarray | None:
+    own_file(path, "similarity matrix")
     if not path.is_file():
-        return None
-    try:
-        m = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise DatasetError(f"{path}: not a readable .npy file ({exc})") from None
+        return _similarity_rows(path.with_name(SIMILARITY_ROWS), int(frames.size))
+    m = read_npy(path, "similarity matrix", mmap=True)
     if m.ndim != 2 or m.shape[0] != m.shape[1] or m.dtype.kind != "f":
         raise DatasetError(
             f"{path}: expected a square float N x N similarity matrix, found {m.shape} {m.dtype}"
@@ -637,3 +963,30 @@ def _load_similarity(path: Path, frames: np.ndarray) -> np.ndarray | None:
             "%s: %d x %d covers frames up to %d only", path, m.shape[0], m.shape[0], m.shape[0] - 1
         )
     return np.asarray(m)
+
+
+def _is_timing_row(row: object) -> bool:
+    return isinstance(row, dict) and all(
+        v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in row.values()
+    )
+
+
+def _similarity_rows(path: Path, n: int) -> np.ndarray | None:
+    """The (n, n) similarity matrix of a run that was not closed, from its appended rows."""
+    if not own_file(path, "similarity rows").is_file():
+        return None
+    rows = min(n, _rows_in(path.stat().st_size))
+    flat = np.fromfile(path, dtype=np.float32, count=rows * (rows - 1) // 2)
+    out = np.zeros((rows, rows), np.float32)
+    for i in range(1, rows):
+        start = i * (i - 1) // 2
+        out[i, :i] = flat[start : start + i]
+    return out
+
+
+def _rows_in(size: int) -> int:
+    """Whole rows in a similarity-rows file of ``size`` bytes (row i holds i float32 values)."""
+    k = int((1 + math.isqrt(1 + 8 * (size // 4))) // 2)
+    while k * (k - 1) // 2 > size // 4:
+        k -= 1
+    return k

@@ -1,0 +1,46 @@
+"""The CLI's one error boundary: known errors and missing optional modules as one line."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from stablecues.cli.main import main, missing_dependency_hint, one_line
+
+
+def test_one_line_escapes_what_a_file_can_smuggle_into_a_message() -> None:
+    assert one_line("bad char '\n' in\tmessage \x16") == "bad char '\\x0a' in message \\x16"
+
+
+def test_missing_optional_modules_get_their_install_command() -> None:
+    err = ModuleNotFoundError("No module named 'pyulog'", name="pyulog")
+    assert missing_dependency_hint(err) == (
+        "this needs the optional module 'pyulog', which is not installed: pip install \"stablecues[mav]\""
+    )
+    assert missing_dependency_hint(ImportError("reading needs h5py: pip install h5py")) == (
+        "reading needs h5py: pip install h5py"
+    )
+    assert missing_dependency_hint(ModuleNotFoundError("No module named 'nowhere'", name="nowhere")) is None
+
+
+def test_an_error_with_a_newline_is_still_one_line(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from stablecues import trajectory
+
+    def broken(path: object) -> None:
+        from stablecues.errors import DatasetError
+
+        raise DatasetError(f"{path}: format char '\n' in message")
+
+    monkeypatch.setattr(trajectory, "read_poses", broken)
+    assert main(["mav", "gt", "poses.txt", "--out", "gt.png"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'\\x0a'" in err
+
+
+def test_an_unexpected_import_error_keeps_its_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "stablecues.trajectory", None)  # a bug, not an optional module
+    with pytest.raises(ImportError):
+        main(["mav", "gt", "poses.txt", "--out", "gt.png"])
