@@ -14,49 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import dbkit
+from dbkit import fake_features, fill
 from stablecues.database import Database, InvertedIndex
 from stablecues.errors import DatabaseError, InputError
 from stablecues.types import Features
 from stablecues.vocabulary import Scoring, Vocabulary, save_vocabulary, score, train_vocabulary
 
-N_IMAGES = 30
-
-
-def fake_features(desc: np.ndarray) -> Features:
-    n = desc.shape[0]
-    rng = np.random.default_rng(n)
-    return Features(
-        keypoints=rng.random((n, 2)).astype(np.float32) * 100,
-        descriptors=desc,
-        octaves=np.zeros(n, np.int16),
-        angles=np.zeros(n, np.float32),
-        responses=np.ones(n, np.float32),
-        sizes=np.full(n, 31, np.float32),
-        image_size=(100, 100),
-    )
-
-
-@pytest.fixture(scope="module")
-def images() -> list[np.ndarray]:
-    """Descriptor sets of 'images': each mixes its own descriptors with some shared ones."""
-    rng = np.random.default_rng(0)
-    common = rng.integers(0, 256, (60, 32), dtype=np.uint8)
-    return [
-        np.concatenate([rng.integers(0, 256, (80, 32), dtype=np.uint8), common[rng.choice(60, 20)]])
-        for _ in range(N_IMAGES)
-    ]
-
-
-@pytest.fixture(scope="module")
-def voc(images: list[np.ndarray]) -> Vocabulary:
-    return train_vocabulary(images, k=6, levels=4, seed=0, levels_up=2, progress=False)
-
-
-def fill(db: Database, voc: Vocabulary, images: list[np.ndarray], with_3d: bool = False) -> None:
-    for i, d in enumerate(images):
-        bow, fvec = voc.transform(d)
-        pts = np.random.default_rng(i).random((d.shape[0], 3)).astype(np.float32) if with_3d else None
-        db.add(bow, fvec, fake_features(d), points3d=pts, timestamp=float(i), meta={"i": i})
+N_IMAGES = dbkit.N_IMAGES
 
 
 def test_image_queried_against_database_comes_first(voc: Vocabulary, images: list[np.ndarray]) -> None:
@@ -168,12 +133,12 @@ def test_empty_features_are_stored_and_queried(voc: Vocabulary, images: list[np.
 
 @pytest.mark.parametrize("table_from", [1 << 30, 64])  # binary search / CSR word tables
 def test_inverted_index_segments_equal_brute_force(table_from: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    import stablecues.database.inverted as inverted
+    import stablecues.database.segments as segments
 
-    monkeypatch.setattr(inverted, "_INDPTR_MIN", table_from)
+    monkeypatch.setattr(segments, "CSR_MIN", table_from)
     rng = np.random.default_rng(0)
     n_words = 500
-    idx = InvertedIndex(n_words, Scoring.L1, tail_limit=300)
+    idx = InvertedIndex(n_words, Scoring.L1, tail_limit=300, chunk=500)
     vectors = []
     for _ in range(200):
         w = np.unique(rng.integers(0, n_words, 40)).astype(np.int32)
@@ -181,8 +146,8 @@ def test_inverted_index_segments_equal_brute_force(table_from: int, monkeypatch:
         v /= v.sum()
         vectors.append((w, v))
         idx.add(w, v.astype(np.float32))
-    assert len(idx._segments) <= 10  # merged logarithmically
-    assert any(seg.indptr is not None for seg in idx._segments) == (table_from == 64)
+    assert len(idx.segments) <= 10  # merged logarithmically
+    assert any(seg.indptr is not None for seg in idx.segments) == (table_from == 64)
     qw, qv = vectors[17]
     ids, s = idx.scores(qw, qv, max_id=150)
     brute = {}
@@ -199,7 +164,7 @@ WRITER = textwrap.dedent(
     """
     import sys, numpy as np
     sys.path.insert(0, {tests!r})
-    from test_database import fake_features
+    from dbkit import fake_features
     from stablecues.database import Database
     from stablecues.vocabulary import load_vocabulary
     voc = load_vocabulary({voc!r}, levels_up=2)
@@ -219,7 +184,7 @@ WRITER = textwrap.dedent(
 def test_killed_writer_loses_at_most_the_entry_in_progress(voc: Vocabulary, tmp_path: Path) -> None:
     voc_path, db_path = tmp_path / "v.scv", tmp_path / "db.sqlite"
     save_vocabulary(voc, voc_path)
-    script = WRITER.format(tests=str(Path(__file__).parent), voc=str(voc_path), db=str(db_path))
+    script = WRITER.format(tests=str(Path(__file__).parents[1]), voc=str(voc_path), db=str(db_path))
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     done = -1

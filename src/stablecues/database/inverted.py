@@ -1,65 +1,114 @@
 """The inverse index: word -> postings (entry id, weight), built for fast sparse queries.
 
 Postings live in a few immutable segments sorted by word (a log-structured merge, like a
-search engine's index) plus a small unsorted tail of the latest additions. A query finds each
-query word's run in every segment with a binary search, gathers the postings with one
-vectorised index computation, adds the tail's matching postings through a dense word lookup,
-and accumulates the scoring's per-word terms per entry with ``np.bincount``: no Python loop
-over words or entries. Tail flushes and segment merges keep O(log n) segments, and the cost of
-an add stays amortised O(log n) per posting.
+search engine's index; see :mod:`.segments`) plus unsorted blocks of the latest additions.
+A query finds each query word's run in every segment (a CSR table or a binary search),
+gathers the postings with one vectorised index computation, adds the unsorted blocks'
+matching postings through a dense word lookup, and accumulates the scoring's per-word terms
+per entry with ``np.bincount``: no Python loop over words or entries. Every entry's terms are
+summed in word order whatever the segments look like, so scores do not depend on when
+segments were merged.
+
+Maintenance never stalls an add: when the latest additions reach ``tail_limit`` postings they
+are sealed into a block (O(1)); sorting a block into a segment and merging ``FAN_IN``
+adjacent segments of one size class are jobs done one bounded step at a time (a chunk of
+words), by the adding thread, one step per add at most (``background=False``), or by a
+background thread (``background=True``). Segments stay O(log n), and each posting is merged
+about log_FAN_IN(n / tail_limit) times. With a ``store`` the segments are files: a
+finished job writes its segment file first and then commits the list of files (the manifest)
+through the store, so the files on disk and the manifest never disagree.
+
+Thread safety: queries work on an immutable snapshot taken under a lock and may run in any
+number of threads while one thread adds.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
+from ..errors import DatabaseError
 from ..vocabulary.scoring import Scoring, common_terms, finish, kl_missing_total
+from .segments import MemorySink, MergeJob, Segment, Sink, empty_postings, pack_postings, sort_block, split
 
-_INDPTR_MIN = 1 << 18  # segments at least this large get a word -> offset table
+log = logging.getLogger(__name__)
+
+MAX_BLOCKS = 4  # sealed blocks waiting to be sorted before an add waits for the maintenance
+FAN_IN = 4  # segments of one size class merged together
+MAX_SEGMENTS = 48  # beyond this many segments an add helps the background maintenance
+
+
+class SegmentStore(Protocol):
+    """Where segments are persisted (see :class:`stablecues.database.files.IndexFiles`)."""
+
+    def sink(self, lo: int, hi: int, csr: bool, total: int) -> Sink: ...
+
+    def commit(self, segments: Sequence[Segment]) -> None: ...
+
+    def discard(self, segments: Sequence[Segment]) -> None: ...
+
+    def rebuild(self, lo: int, hi: int) -> list[Segment]: ...
+
+
+@dataclass(eq=False)
+class _Block:
+    """Unsorted postings of entries ``lo .. hi - 1`` (sealed additions)."""
+
+    lo: int
+    hi: int
+    words: np.ndarray
+    postings: np.ndarray
+    sessions: np.ndarray
+
+
+@dataclass(eq=False)
+class _Job:
+    inputs: list[Segment]
+    block: _Block | None = None
+    merge: MergeJob | None = None
+    claimed: bool = False
+    dropped: bool = False  # the index was reset while the job ran: its result is thrown away
+
+    @property
+    def remaining(self) -> int:
+        if self.block is not None:
+            return -1  # flushes first
+        assert self.merge is not None
+        return self.merge.remaining
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    segments: tuple[Segment, ...]
+    unsorted: tuple[tuple[np.ndarray, np.ndarray], ...]
+    n_entries: int
+    alive: np.ndarray | None
 
 
 @dataclass
-class _Segment:
-    words: np.ndarray  # (P,) int32, sorted (stable: entry ids ascending within a word)
-    entries: np.ndarray  # (P,) int32
-    weights: np.ndarray  # (P,) float32
-    indptr: np.ndarray | None = None  # (W + 1,) offsets of each word's run (large segments)
+class _Tail:
+    """The latest additions, entries ``lo .. lo + len(sessions) - 1``, as handed in."""
 
-    @property
-    def size(self) -> int:
-        return int(self.words.shape[0])
+    lo: int = 0
+    words: list[np.ndarray] = field(default_factory=list)
+    weights: list[np.ndarray] = field(default_factory=list)
+    sessions: list[int] = field(default_factory=list)
+    size: int = 0
 
-    def with_table(self, n_words: int) -> _Segment:
-        """Give a large segment its CSR table, so a query finds each word's run in O(1)."""
-        if self.size >= _INDPTR_MIN and self.indptr is None:
-            counts = np.bincount(self.words, minlength=n_words)
-            dtype = np.int32 if self.size < 2**31 else np.int64
-            self.indptr = np.zeros(n_words + 1, dtype)
-            np.cumsum(counts, out=self.indptr[1:])
-        return self
-
-    def runs(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Start and end offsets of the runs of the given sorted query words."""
-        if self.indptr is not None:
-            return self.indptr[words].astype(np.int64), self.indptr[words + 1].astype(np.int64)
-        return (np.searchsorted(self.words, words, "left"), np.searchsorted(self.words, words, "right"))
-
-
-def _merge(a: _Segment, b: _Segment) -> _Segment:
-    """Merge two word-sorted segments, ``a`` holding the older entries: a linear merge by
-    binary search (no sort of the whole), keeping entry order within each word."""
-    n = a.size + b.size
-    # b's postings go after a's postings of the same word; a's before b's
-    pos_b = np.searchsorted(a.words, b.words, side="right") + np.arange(b.size)
-    pos_a = np.searchsorted(b.words, a.words, side="left") + np.arange(a.size)
-    out = _Segment(np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.float32))
-    for dst, src_a, src_b in ((out.words, a.words, b.words), (out.entries, a.entries, b.entries),
-                              (out.weights, a.weights, b.weights)):
-        dst[pos_a] = src_a
-        dst[pos_b] = src_b
-    return out
+    def arrays(self, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Words and postings of the first ``k`` entries (all by default)."""
+        words, weights = self.words[:k], self.weights[:k]
+        if not words:
+            return np.zeros(0, np.int32), empty_postings()
+        counts = np.fromiter((w.shape[0] for w in words), np.int64, len(words))
+        entries = np.repeat(np.arange(self.lo, self.lo + len(words), dtype=np.int32), counts)
+        return np.concatenate(words), pack_postings(entries, np.concatenate(weights))
 
 
 class InvertedIndex:
@@ -68,87 +117,455 @@ class InvertedIndex:
     Args:
         n_words: vocabulary size.
         scoring: how entries are scored against a query.
-        tail_limit: postings kept unsorted before they are flushed into a segment.
+        tail_limit: postings kept unsorted before they are sealed for sorting.
+        store: where segments are persisted (None: in memory only).
+        background: run the maintenance in a background thread (else one bounded step per
+            add in the adding thread).
+        chunk: postings merged per maintenance step (about).
     """
 
-    def __init__(self, n_words: int, scoring: Scoring, tail_limit: int = 1 << 16) -> None:
+    def __init__(
+        self, n_words: int, scoring: Scoring, tail_limit: int = 1 << 16, *,
+        store: SegmentStore | None = None, background: bool = False, chunk: int = 1 << 17,
+    ) -> None:
         self.n_words = int(n_words)
         self.scoring = scoring
         self.tail_limit = int(tail_limit)
+        self.chunk = int(chunk)
+        self.store = store
         self.n_entries = 0
-        self._segments: list[_Segment] = []
-        self._tail_words: list[np.ndarray] = []
-        self._tail_entries: list[np.ndarray] = []
-        self._tail_weights: list[np.ndarray] = []
-        self._tail_size = 0
-        self._tail_cache: _Segment | None = None
-        self._lookup = np.zeros(self.n_words, np.float64)
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self._segments: list[Segment] = []
+        self._blocks: list[_Block] = []
+        self._jobs: list[_Job] = []
+        self._busy: set[int] = set()  # id() of segments in a job
+        self._tail = _Tail()
+        self._sessions = np.zeros(1024, np.int32)
+        self._alive: np.ndarray | None = None
+        self._snap: _Snapshot | None = None
+        self._local = threading.local()
+        self._credit = 0
+        self._idle = False  # nothing to do until the segments change (inline maintenance)
+        self._broken: BaseException | None = None
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        if background:
+            self._thread = threading.Thread(target=self._run, name="stablecues-index", daemon=True)
+            self._thread.start()
 
+    # ------------------------------------------------------------------ sizes
     @property
     def n_postings(self) -> int:
-        return sum(s.size for s in self._segments) + self._tail_size
+        with self._lock:
+            return (sum(s.size for s in self._segments) + sum(b.postings.shape[0] for b in self._blocks)
+                    + self._tail.size)
 
     @property
     def nbytes(self) -> int:
-        return sum(
-            s.words.nbytes + s.entries.nbytes + s.weights.nbytes
-            + (0 if s.indptr is None else s.indptr.nbytes)
-            for s in self._segments
-        ) + self._tail_size * 12
+        """Bytes of postings and tables (resident or mapped)."""
+        with self._lock:
+            return (sum(s.nbytes for s in self._segments)
+                    + sum(b.postings.nbytes + b.words.nbytes for b in self._blocks) + self._tail.size * 12)
 
-    def add(self, words: np.ndarray, weights: np.ndarray) -> int:
+    @property
+    def segments(self) -> tuple[Segment, ...]:
+        with self._lock:
+            return tuple(self._segments)
+
+    def sessions(self) -> np.ndarray:
+        """(n_entries,) int32 session of every entry (a read-only view)."""
+        with self._lock:
+            view = self._sessions[: self.n_entries]
+        view = view.view()
+        view.flags.writeable = False
+        return view
+
+    def alive(self) -> np.ndarray | None:
+        """(>= n_entries,) bool, False for removed entries, or None when none was removed."""
+        return self._alive
+
+    # ------------------------------------------------------------------ loading
+    def reset(
+        self, segments: Sequence[Segment], n_entries: int, sessions: np.ndarray,
+        removed: np.ndarray | None = None,
+    ) -> None:
+        """Replace the whole content (opening or refreshing a database).
+
+        Args:
+            segments: segments covering entries ``0 .. n_entries - 1`` contiguously.
+            n_entries: number of entry ids.
+            sessions: (n_entries,) int32 session of every entry.
+            removed: ids of removed entries, or None.
+        """
+        pos = 0
+        for seg in segments:
+            if seg.lo != pos:
+                raise DatabaseError(f"index segments are not contiguous at entry {pos}")
+            pos = seg.hi
+        if pos != n_entries:
+            raise DatabaseError(f"index segments cover {pos} entries, the database has {n_entries}")
+        with self._lock:
+            for job in self._jobs:
+                job.dropped = True
+                if job.merge is not None and not job.claimed:
+                    job.merge.abort()
+            self._jobs, self._busy = [], set()
+            self._idle = False
+            self._segments = list(segments)
+            self._blocks = []
+            self._tail = _Tail(lo=n_entries)
+            self.n_entries = n_entries
+            cap = max(1024, 1 << int(n_entries).bit_length())
+            self._sessions = np.zeros(cap, np.int32)
+            self._sessions[:n_entries] = sessions
+            self._alive = None
+            if removed is not None and removed.size:
+                self._alive = np.ones(cap, bool)
+                self._alive[removed] = False
+            self._snap = None
+            self._changed.notify_all()
+
+    # ------------------------------------------------------------------ adding
+    def add(self, words: np.ndarray, weights: np.ndarray, session: int = 0) -> int:
         """Append the next entry's BoW vector; returns its id."""
-        entry = self.n_entries
-        self._tail_words.append(np.asarray(words, np.int32))
-        self._tail_entries.append(np.full(words.shape[0], entry, np.int32))
-        self._tail_weights.append(np.asarray(weights, np.float32))
-        self._tail_size += int(words.shape[0])
-        self._tail_cache = None
-        self.n_entries += 1
-        if self._tail_size >= self.tail_limit:
-            self.flush()
+        w = np.asarray(words, np.int32)
+        with self._lock:
+            entry = self.n_entries
+            t = self._tail
+            t.words.append(w)
+            t.weights.append(np.asarray(weights, np.float32))
+            t.sessions.append(int(session))
+            t.size += int(w.shape[0])
+            if entry >= self._sessions.shape[0]:
+                self._grow(2 * self._sessions.shape[0])
+            self._sessions[entry] = session
+            self.n_entries = entry + 1
+            self._snap = None
+            if t.size >= self.tail_limit:
+                self._seal()
+        self._after_add(int(w.shape[0]))
         return entry
 
-    def add_many(self, words: np.ndarray, entries: np.ndarray, weights: np.ndarray, n_entries: int) -> None:
-        """Bulk-load postings of entries ``n_entries`` ids (used when reopening a database)."""
-        self.flush()
-        order = np.argsort(words, kind="stable")
-        self._push(_Segment(np.asarray(words, np.int32)[order], np.asarray(entries, np.int32)[order],
-                            np.asarray(weights, np.float32)[order]))
-        self.n_entries = max(self.n_entries, int(n_entries))
+    def _grow(self, cap: int) -> None:
+        sessions = np.zeros(cap, np.int32)
+        sessions[: self._sessions.shape[0]] = self._sessions
+        self._sessions = sessions
+        if self._alive is not None:
+            alive = np.ones(cap, bool)
+            alive[: self._alive.shape[0]] = self._alive
+            self._alive = alive
+
+    def _seal(self) -> None:
+        t = self._tail
+        if not t.sessions:
+            return
+        words, postings = t.arrays()
+        block = _Block(t.lo, t.lo + len(t.sessions), words, postings, np.array(t.sessions, np.int32))
+        self._blocks.append(block)
+        self._tail = _Tail(lo=block.hi)
+        self._changed.notify_all()
+
+    def _after_add(self, n_postings: int) -> None:
+        if self._thread is None:
+            # inline maintenance: at most one bounded step per add, paid for by the postings
+            # added (each posting is merged about log2(n) times)
+            self._credit += 32 * n_postings
+            if self._blocks or (self._credit >= self.chunk and not self._idle):
+                done = self.step()
+                if done is None:
+                    self._idle, self._credit = True, 0
+                else:
+                    self._credit = max(self._credit - max(done, 0), 0)
+            return
+        if len(self._blocks) > MAX_BLOCKS or len(self._segments) > MAX_SEGMENTS:
+            self.step()  # the background thread falls behind (a busy machine): one step of help
+        if len(self._blocks) > 2 * MAX_BLOCKS:  # the hard limit on unsorted postings
+            with self._lock:
+                deadline = time.monotonic() + 60
+                while len(self._blocks) > 2 * MAX_BLOCKS and self._broken is None and not self._stop:
+                    if not self._changed.wait(timeout=max(deadline - time.monotonic(), 0.01)):
+                        break
+
+    def remove(self, ids: np.ndarray) -> None:
+        """Leave these entries out of every query from now on (their postings stay until
+        :meth:`compact`)."""
+        with self._lock:
+            alive = np.ones(self._sessions.shape[0], bool) if self._alive is None else self._alive.copy()
+            alive[np.asarray(ids, np.int64)] = False
+            self._alive = alive  # copy on write: snapshots keep the mask they were taken with
+            self._snap = None
+
+    # ------------------------------------------------------------------ maintenance
+    def step(self) -> int | None:
+        """Run one bounded maintenance step; returns the postings it handled (None: idle)."""
+        with self._lock:
+            if self._broken is not None:
+                return None
+            job = self._claim()
+            if job is None:
+                return None
+        try:
+            done, work = self._advance(job)
+        except Exception as exc:  # noqa: BLE001 - a failed job must not take the index down
+            self._failed(job, exc)
+            return 0
+        with self._lock:
+            job.claimed = False
+            if job.dropped:
+                if job.merge is not None:
+                    job.merge.abort()
+                if done and job.merge is not None and job.merge.result is not None:
+                    self._discard([job.merge.result])
+                return work
+            old = self._install(job) if done else []
+            self._changed.notify_all()
+        self._discard(old)
+        return work
+
+    def _advance(self, job: _Job) -> tuple[bool, int]:
+        if job.block is not None:
+            b = job.block
+            seg = sort_block(b.words, b.postings, b.lo, b.hi, b.sessions, self.n_words)
+            if self.store is not None:
+                sink = self.store.sink(seg.lo, seg.hi, seg.indptr is not None, seg.size)
+                try:
+                    sink.append(_words_of(seg), seg.postings)
+                    seg = sink.finish(seg.sessions)
+                except BaseException:
+                    sink.abort()
+                    raise
+            job.inputs = [seg]
+            return True, b.postings.shape[0]
+        assert job.merge is not None
+        before = job.merge.remaining
+        done = job.merge.step()
+        return done, max(before - job.merge.remaining, 1)
+
+    def _claim(self) -> _Job | None:
+        self._plan()
+        free = [j for j in self._jobs if not j.claimed]
+        if not free:
+            return None
+        job = min(free, key=lambda j: j.remaining)
+        job.claimed = True
+        return job
+
+    def _plan(self) -> None:
+        """Start the jobs the index needs: sort the oldest sealed block, persist segments kept
+        in memory, merge adjacent segments of similar size."""
+        if self._blocks and not any(j.block is not None for j in self._jobs):
+            self._jobs.append(_Job([], block=self._blocks[0]))
+        segs = self._segments
+        free = [s for s in segs if id(s) not in self._busy]
+        if self.store is not None:
+            for s in free:
+                if s.name is None:
+                    self._start([s])
+                    return
+        run = self._mergeable(segs)
+        if run:
+            self._start(run)
+
+    def _mergeable(self, segs: list[Segment]) -> list[Segment]:
+        """The oldest FAN_IN adjacent free segments of one size class, newest classes first
+        (tiered merging: each posting is merged about log_FAN_IN(n / tail_limit) times)."""
+        level = [-1 if id(s) in self._busy else _size_class(s.size, self.tail_limit) for s in segs]
+        i = len(segs)
+        while i > 0:
+            j = i - 1
+            while j > 0 and level[j - 1] == level[i - 1]:
+                j -= 1
+            if level[i - 1] >= 0 and i - j >= FAN_IN:
+                return segs[j : j + FAN_IN]
+            i = j
+        return []
+
+    def _start(self, inputs: list[Segment], alive: np.ndarray | None = None) -> _Job:
+        factory = self.store.sink if self.store is not None else self._memory_sink
+        job = _Job(inputs, merge=MergeJob(inputs, factory, self.n_words, self.chunk, alive))
+        self._busy.update(id(s) for s in inputs)
+        self._jobs.append(job)
+        return job
+
+    def _memory_sink(self, lo: int, hi: int, csr: bool, total: int) -> Sink:
+        return MemorySink(lo, hi, csr, self.n_words, total)
+
+    def _install(self, job: _Job) -> list[Segment]:
+        """Put a finished job's segment in place and commit the manifest; returns the replaced
+        segments whose files are to be deleted."""
+        self._jobs.remove(job)
+        self._idle = False
+        if job.block is not None:
+            assert self._blocks and self._blocks[0] is job.block
+            self._blocks.pop(0)
+            new = job.inputs[0]
+            self._segments.append(new)
+            old: list[Segment] = []
+        else:
+            assert job.merge is not None and job.merge.result is not None
+            new = job.merge.result
+            old = job.inputs
+            i = next(k for k, s in enumerate(self._segments) if s is old[0])
+            self._segments[i : i + len(old)] = [new]
+            self._busy.difference_update(id(s) for s in old)
+        self._snap = None
+        if self.store is None:
+            return []
+        self.store.commit(self._segments)
+        return [s for s in old if s.name is not None and s.name != new.name]
+
+    def _discard(self, old: list[Segment]) -> None:
+        """Delete replaced segment files, outside the lock (unlinking a large file takes a while)."""
+        if old and self.store is not None:
+            self.store.discard(old)
+
+    def _failed(self, job: _Job, exc: Exception) -> None:
+        with self._lock:
+            if job.merge is not None:
+                job.merge.abort()
+            if job.dropped:
+                return
+            self._jobs.remove(job)
+            self._busy.difference_update(id(s) for s in job.inputs)
+            if isinstance(exc, DatabaseError) and self.store is not None and job.merge is not None:
+                log.warning("%s; rebuilding entries %d..%d of the index from the database",
+                            exc, job.merge.lo, job.merge.hi - 1)
+                try:
+                    self._replace_from_store(job.inputs)
+                    return
+                except Exception as exc2:  # noqa: BLE001
+                    exc = exc2
+            log.error("index maintenance stopped: %s", exc)
+            self._broken = exc
+            self._changed.notify_all()
+
+    def _replace_from_store(self, inputs: list[Segment]) -> None:
+        assert self.store is not None
+        for seg in inputs:
+            if seg.path is not None:
+                self.replace(seg, self.store.rebuild(seg.lo, seg.hi))
+
+    def replace(self, old: Segment, new: Sequence[Segment]) -> None:
+        """Put segments covering the same entries in place of one (a repair)."""
+        with self._lock:
+            if id(old) in self._busy:
+                raise DatabaseError("cannot replace a segment that is being merged")
+            if new[0].lo != old.lo or new[-1].hi != old.hi:
+                raise ValueError("replacement segments must cover the same entries")
+            i = next(k for k, s in enumerate(self._segments) if s is old)
+            self._segments[i : i + 1] = list(new)
+            self._snap = None
+            self._idle = False
+            if self.store is not None:
+                self.store.commit(self._segments)
+            self._changed.notify_all()
+
+    def set_store(self, store: SegmentStore | None) -> None:
+        """Persist segments from now on (the database became the file's writer)."""
+        with self._lock:
+            self.store = store
+            self._idle = False
+            self._changed.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                while not self._stop and (self._broken is not None or not self._has_work()):
+                    self._changed.wait()
+                if self._stop:
+                    return
+            self.step()
+
+    def _has_work(self) -> bool:
+        if any(not j.claimed for j in self._jobs):
+            return True
+        self._plan()
+        return any(not j.claimed for j in self._jobs)
 
     def flush(self) -> None:
-        """Sort the tail into a segment and merge segments of similar size."""
-        if not self._tail_size:
-            return
-        tail = self._tail()
-        self._tail_words, self._tail_entries, self._tail_weights = [], [], []
-        self._tail_size = 0
-        self._tail_cache = None
-        order = np.argsort(tail.words, kind="stable")
-        self._push(_Segment(tail.words[order], tail.entries[order], tail.weights[order]))
+        """Seal the latest additions and finish every maintenance job (persisting everything
+        when the index has a store)."""
+        with self._lock:
+            self._seal()
+        while True:
+            if self._broken is not None:
+                raise DatabaseError(f"index maintenance failed: {self._broken}")
+            if self.step() is None:
+                with self._lock:
+                    if not self._jobs and not self._blocks and self._has_no_pending_plan():
+                        return
+                    self._changed.wait(timeout=0.05)
 
-    def _push(self, seg: _Segment) -> None:
-        self._segments.append(seg)
-        # merge while the newer segment is at least half the size of the one before it
-        while len(self._segments) > 1 and self._segments[-1].size * 2 >= self._segments[-2].size:
-            b = self._segments.pop()
-            a = self._segments.pop()
-            self._segments.append(_merge(a, b))
-        self._segments[-1].with_table(self.n_words)
+    def _has_no_pending_plan(self) -> bool:
+        self._plan()
+        return not self._jobs
 
-    def _tail(self) -> _Segment:
-        if self._tail_cache is None:
-            if self._tail_size:
-                self._tail_cache = _Segment(np.concatenate(self._tail_words),
-                                            np.concatenate(self._tail_entries),
-                                            np.concatenate(self._tail_weights))
-            else:
-                z = np.zeros(0, np.int32)
-                self._tail_cache = _Segment(z, z, np.zeros(0, np.float32))
-        return self._tail_cache
+    def compact(self) -> None:
+        """Rewrite every segment without the postings of removed entries."""
+        while True:
+            self.flush()
+            with self._lock:
+                if self._jobs:  # the background thread started a merge meanwhile
+                    continue
+                if self._alive is None or not self._segments:
+                    return
+                job = self._start(list(self._segments), self._alive)
+                job.claimed = True
+                break
+        try:
+            while True:
+                done, _ = self._advance(job)
+                if done:
+                    break
+        except Exception as exc:
+            self._failed(job, exc)
+            raise
+        with self._lock:
+            job.claimed = False
+            old = self._install(job)
+        self._discard(old)
 
-    def postings(self, words: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def close(self) -> None:
+        """Stop the maintenance (unfinished jobs are dropped; their inputs stay valid)."""
+        with self._lock:
+            self._stop = True
+            self._changed.notify_all()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=60)  # a step is short; never hang a closing program
+        with self._lock:
+            for job in self._jobs:
+                if job.merge is not None:
+                    job.merge.abort()
+            self._jobs = []
+            self._busy = set()
+
+    # ------------------------------------------------------------------ querying
+    def _snapshot(self) -> _Snapshot:
+        with self._lock:
+            snap = self._snap
+            if snap is not None:
+                return snap
+            tail, k = self._tail, len(self._tail.sessions)
+            blocks = [(b.words, b.postings) for b in self._blocks]
+            segments = tuple(self._segments)
+            n, alive = self.n_entries, self._alive
+        if k:
+            blocks.append(tail.arrays(k))  # the tail's lists only grow: its first k entries stay
+        snap = _Snapshot(segments, tuple(blocks), n, alive)
+        with self._lock:
+            if self.n_entries == n and self._snap is None and self._segments == list(segments):
+                self._snap = snap
+        return snap
+
+    def _lookup(self) -> np.ndarray:
+        lookup: np.ndarray | None = getattr(self._local, "lookup", None)
+        if lookup is None:
+            lookup = self._local.lookup = np.zeros(self.n_words, np.float64)
+        return lookup
+
+    def postings(self, words: np.ndarray, values: np.ndarray, snap: _Snapshot | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All postings of the given query words.
 
         Args:
@@ -159,34 +576,30 @@ class InvertedIndex:
             entries (P,) int32, entry weights (P,) float32 and the query weight of each
             posting's word (P,) float64.
         """
-        ent_parts: list[np.ndarray] = []
-        w_parts: list[np.ndarray] = []
+        snap = snap or self._snapshot()
+        post_parts: list[np.ndarray] = []
         v_parts: list[np.ndarray] = []
-        for seg in self._segments:
-            lo, hi = seg.runs(words)
-            counts = hi - lo
-            nz = np.flatnonzero(counts)
-            if not nz.size:
-                continue
-            # each word's postings are one contiguous run: copy runs (memcpy) rather than
-            # gathering element by element
-            bounds = list(zip(lo[nz].tolist(), hi[nz].tolist(), strict=True))
-            ent_parts.append(np.concatenate([seg.entries[a:b] for a, b in bounds]))
-            w_parts.append(np.concatenate([seg.weights[a:b] for a, b in bounds]))
-            v_parts.append(np.repeat(values, counts))
-        if self._tail_size:
-            tail = self._tail()
-            lookup = self._lookup
+        for seg in snap.segments:
+            got = seg.gather(words, values)
+            if got is not None:
+                post_parts.append(got[0])
+                v_parts.append(got[1])
+        if snap.unsorted:
+            lookup = self._lookup()
             lookup[words] = values
-            v = lookup[tail.words]
-            lookup[words] = 0.0
-            hit = v != 0
-            ent_parts.append(tail.entries[hit])
-            w_parts.append(tail.weights[hit])
-            v_parts.append(v[hit])
-        if not ent_parts:
+            try:
+                for bw, bp in snap.unsorted:
+                    v = lookup[bw]
+                    hit = v != 0
+                    post_parts.append(bp[hit])
+                    v_parts.append(v[hit])
+            finally:
+                lookup[words] = 0.0
+        if not post_parts:
             return np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0)
-        return np.concatenate(ent_parts), np.concatenate(w_parts), np.concatenate(v_parts)
+        post = np.concatenate(post_parts) if len(post_parts) > 1 else post_parts[0]
+        entries, weights = split(post)
+        return entries, weights, np.concatenate(v_parts) if len(v_parts) > 1 else v_parts[0]
 
     def scores(
         self, words: np.ndarray, values: np.ndarray, max_id: int | None = None, min_id: int = 0
@@ -200,21 +613,57 @@ class InvertedIndex:
             min_id: only entries with id >= min_id.
 
         Returns:
-            entry ids (K,) int64 and their DBoW2 scores (K,) float64, in id order.
+            entry ids (K,) int64 and their DBoW2 scores (K,) float64, in id order; removed
+            entries are left out.
         """
-        hi = self.n_entries if max_id is None else max(0, min(int(max_id), self.n_entries))
+        snap = self._snapshot()
+        n = snap.n_entries
+        hi = n if max_id is None else max(0, min(int(max_id), n))
+        min_id = max(int(min_id), 0)
         if hi <= min_id or words.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
-        ent, w, v = self.postings(words, values)
+        ent, w, v = self.postings(words, values, snap)
         if ent.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
         terms = common_terms(self.scoring, v, w)
         # accumulate over every entry, then keep the id range (cheaper than filtering postings)
-        sums = np.bincount(ent, weights=terms, minlength=self.n_entries)[min_id:hi]
-        if self.scoring == Scoring.KL or not (w.min() > 0 and v.min() > 0):
-            present = np.bincount(ent, minlength=self.n_entries)[min_id:hi] > 0
+        try:
+            sums = np.bincount(ent, weights=terms, minlength=n)
+        except ValueError as exc:  # negative ids: only a corrupt index file holds them
+            raise DatabaseError(f"the inverse index holds invalid entry ids ({exc})") from exc
+        if sums.shape[0] != n:
+            raise DatabaseError(f"the inverse index holds entry ids beyond the {n} entries")
+        sums = sums[min_id:hi]
+        if self.scoring == Scoring.KL or not terms.min() > 0:
+            present = np.bincount(ent, minlength=n)[min_id:hi] > 0
         else:
-            present = sums != 0  # every shared word adds a non-zero term when weights are > 0
+            present = sums != 0  # a sum of positive terms is never 0
+        if snap.alive is not None:
+            present &= snap.alive[min_id:hi]
         ids = np.flatnonzero(present)
         kl = kl_missing_total(values) if self.scoring == Scoring.KL else 0.0
         return ids + min_id, finish(self.scoring, sums[ids], kl)
+
+
+def _size_class(size: int, base: int) -> int:
+    """0 below FAN_IN * base postings, then one more per factor FAN_IN."""
+    c = 0
+    limit = base * FAN_IN
+    while size >= limit:
+        c += 1
+        limit *= FAN_IN
+    return c
+
+
+def _words_of(seg: Segment) -> np.ndarray:
+    if seg.words is not None:
+        return seg.words
+    assert seg.indptr is not None
+    return np.repeat(np.arange(seg.indptr.shape[0] - 1, dtype=np.int32), np.diff(seg.indptr))
+
+
+def empty_segment(lo: int = 0) -> Segment:
+    return Segment(lo, lo, empty_postings(), np.zeros(0, np.int32), None, np.zeros(0, np.int32))
+
+
+OnCommit = Callable[[Sequence[Segment]], None]

@@ -1,24 +1,45 @@
 """The topological database: BoW vectors (inverse index), direct index, keypoints,
 descriptors, 3D points and metadata per entry, persisted in an embedded SQLite file.
 
-Durability: every :meth:`Database.add` is one SQLite transaction in WAL mode, so a process
-killed in the middle of an add loses at most that entry and never earlier ones; reopening
-rebuilds the in-memory inverse index from the stored BoW vectors and gives identical query
-results. One writer and any number of readers may use a file at once (readers call
-:meth:`Database.refresh` to see entries added since they opened it). The file records the
-vocabulary's fingerprint and refuses to be used with another vocabulary.
+Durability: every :meth:`Database.add` is one SQLite statement in WAL mode (atomic), so a
+process killed in the middle of an add loses at most that entry and never earlier ones. The
+inverse index is kept next to the file in ``<file>-index/`` as memory-mapped segment files
+named by a manifest inside the database (see :mod:`.files`), so reopening a map maps a few
+files instead of rebuilding the index entry by entry; only the latest additions (at most a
+few blocks of ``tail_postings``) are read back from the entries. Entries are the source of
+truth: a missing or damaged index file is rebuilt from them. Index maintenance (sorting the
+latest additions, merging segments) runs in bounded steps, at most one per add (or in a
+thread of its own), so no add waits for a whole merge; the write-ahead log is copied into
+the file by a thread of its own, so no add waits for the disk either.
+
+One writing Database object per file at a time, and any number of readers (other objects or
+processes, ``readonly=True``; they call :meth:`Database.refresh` to see what the writer has
+done since). One object may be shared by threads: queries from any number of threads while
+one thread adds. The file records the vocabulary's fingerprint and refuses to be used with
+another vocabulary.
+
+Long-lived maps: every entry belongs to a session (an int; :meth:`Database.new_session`
+starts one); queries can keep to some sessions or leave some out; entries can be removed by
+id, session or time (:meth:`Database.remove`) and the space reclaimed
+(:meth:`Database.compact`); :func:`stablecues.database.merge_maps` merges map files.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import functools
+import gc
 import json
 import logging
 import math
 import sqlite3
+import sys
+import threading
 import time
+import weakref
 from collections import OrderedDict
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -28,24 +49,30 @@ import numpy as np
 from ..errors import DatabaseError, InputError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
+from .files import IndexFiles, LogCheckpointer, Manifest, WriterLock, index_dir, open_segments
 from .inverted import InvertedIndex
-from .packing import pack_arrays, unpack_arrays
+from .packing import pack_arrays, pack_buffer, unpack_arrays
+from .schema import (
+    FORMAT_VERSION,
+    MAX_SESSION,
+    Schema,
+    Sql,
+    int_value,
+    meta_value,
+    prepare,
+    timestamp_value,
+)
+from .segments import Segment, empty_postings, pack_postings, sort_block, verify_segment
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+__all__ = ["FORMAT_VERSION", "Database", "DatabaseConfig"]
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS entries (
-    id INTEGER PRIMARY KEY,
-    timestamp REAL,
-    n_features INTEGER NOT NULL,
-    bow BLOB NOT NULL,
-    payload BLOB NOT NULL,
-    meta TEXT NOT NULL
-);
-"""
+_LOAD_BLOCK = 4096  # entries per segment when entries are read back from the database
+_CHECKPOINT_PAGES = 256  # SQLite copies its log into the file every ~1 MB: short stalls
+_BACKSTOP_PAGES = 4096  # ... or every 16 MB, if the thread of ours that does it falls behind
+_EMPTY_BOW = pack_arrays({"words": np.zeros(0, np.int32), "weights": np.zeros(0, np.float32)})
+_EMPTY_PAYLOAD = pack_arrays({"fvec": np.zeros(0, np.int32), "image_size": np.zeros(2, np.int32)})
 
 
 @dataclass(frozen=True)
@@ -54,16 +81,62 @@ class DatabaseConfig:
 
     Attributes:
         durability: "normal" survives a killed process (SQLite WAL, synchronous=NORMAL);
-            "full" also survives power loss (synchronous=FULL), at a cost per add.
+            "full" also survives power loss (synchronous=FULL, index files synced), at a cost
+            per add.
         store_descriptors: keep keypoints and descriptors (needed by geometric verification).
         cache_entries: how many full entries to keep in memory for :meth:`Database.entry`.
         busy_timeout_s: how long to wait for a lock held by another process.
+        maintenance: "inline" sorts and merges index segments in the adding thread, one
+            bounded step per add at most; "background" does it in a thread of its own (better
+            where a core is free and the adding thread leaves the interpreter idle: on a
+            busy 2-core machine the two threads slow each other down).
+        tail_postings: postings of the latest additions kept unsorted before they are sealed.
+        merge_chunk: postings merged per maintenance step (about).
     """
 
     durability: Literal["normal", "full"] = "normal"
     store_descriptors: bool = True
     cache_entries: int = 256
     busy_timeout_s: float = 10.0
+    maintenance: Literal["background", "inline"] = "inline"
+    tail_postings: int = 1 << 16
+    merge_chunk: int = 1 << 17
+
+    def __post_init__(self) -> None:
+        if self.durability not in ("normal", "full"):
+            raise InputError(f"durability must be 'normal' or 'full', not {self.durability!r}")
+        if self.maintenance not in ("background", "inline"):
+            raise InputError(f"maintenance must be 'background' or 'inline', not {self.maintenance!r}")
+        for name in ("cache_entries", "tail_postings", "merge_chunk"):
+            value = getattr(self, name)
+            least = 0 if name == "cache_entries" else 1
+            if not isinstance(value, int) or isinstance(value, bool) or value < least:
+                raise InputError(f"{name} must be a positive integer, not {value!r}")
+
+
+def _session_ids(value: int | Iterable[int], what: str) -> np.ndarray:
+    ids = np.atleast_1d(np.asarray(list(value) if not isinstance(value, int | np.integer) else value))
+    if ids.dtype.kind not in "iu":
+        raise InputError(f"{what}: expected session ids (integers), got {ids.dtype}")
+    return ids.astype(np.int64)
+
+
+_OPEN: weakref.WeakSet[Database] = weakref.WeakSet()
+
+
+def _track(db: Database) -> None:
+    """Close the database at exit, while its threads can still run (registered on first use,
+    not at import)."""
+    if not _OPEN and not getattr(_track, "registered", False):
+        atexit.register(_close_open_databases)
+        _track.registered = True  # type: ignore[attr-defined]
+    _OPEN.add(db)
+
+
+def _close_open_databases() -> None:
+    for db in list(_OPEN):
+        with contextlib.suppress(Exception):
+            db.close()
 
 
 class Database:
@@ -71,9 +144,12 @@ class Database:
 
     Args:
         vocabulary: the vocabulary every stored BoW vector comes from.
-        path: SQLite file (created when missing), or None for a database kept in memory.
+        path: SQLite file (created when missing; its directory must exist), or None for a
+            database kept in memory.
         config: settings.
         readonly: open an existing file for reading only (a concurrent reader).
+        session: session of the entries added from now on (default: the latest session in
+            the file, 0 for a new one).
     """
 
     def __init__(
@@ -82,21 +158,51 @@ class Database:
         path: str | Path | None = None,
         config: DatabaseConfig | None = None,
         readonly: bool = False,
+        *,
+        session: int | None = None,
     ) -> None:
         self.vocabulary = vocabulary
         self.config = config or DatabaseConfig()
         self.path = None if path is None else Path(path)
         self.readonly = readonly
         self._higher_better = higher_is_better(vocabulary.scoring)
-        self._index = InvertedIndex(vocabulary.n_words, vocabulary.scoring)
         self._cache: OrderedDict[int, Entry] = OrderedDict()
-        self._conn = self._connect()
-        self._check_or_write_meta()
-        self.refresh()
+        self._cache_lock = threading.Lock()
+        self._add_lock = threading.RLock()
+        self._writer: WriterLock | None = None
+        self._checkpointer: LogCheckpointer | None = None
+        self._files: IndexFiles | None = None
+        self._index: InvertedIndex | None = None
+        self._sql = Sql(self._connect(), self._where(), readonly)
+        _track(self)
+        try:
+            self._schema: Schema = prepare(self._sql, vocabulary)  # refuses other files untouched
+            if not readonly and self.path is not None:
+                self._wal()
+            persistent = self.path is not None and not readonly and self._schema.uuid is not None
+            if persistent:
+                self._take_writer_lock()
+            background = self.config.maintenance == "background" and not readonly
+            self._index = InvertedIndex(vocabulary.n_words, vocabulary.scoring, self.config.tail_postings,
+                                        store=self._files, background=background,
+                                        chunk=self.config.merge_chunk)
+            self._load_index()
+            latest = self._index.sessions()
+            self.session = int(latest[-1]) if session is None and latest.size else int(session or 0)
+            self._check_session(self.session)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ opening
     def _where(self) -> str:
         return str(self.path) if self.path is not None else "<memory database>"
+
+    @property
+    def index(self) -> InvertedIndex:
+        if self._index is None:
+            raise DatabaseError(f"{self._where()}: database is closed")
+        return self._index
 
     def _connect(self) -> sqlite3.Connection:
         where = self._where()
@@ -110,107 +216,183 @@ class Database:
                 raise DatabaseError(f"{where}: database file not found")
             if self.path.exists() and not self.path.is_file():
                 raise DatabaseError(f"{where}: not a file")
-            if not self.readonly:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
+            if not self.path.parent.is_dir():
+                raise DatabaseError(f"{where}: directory {self.path.parent} does not exist")
             # as_uri() percent-encodes '#', '?' and '%', which a raw "file:" URI would cut at
             target = f"{self.path.resolve().as_uri()}?mode={'ro' if self.readonly else 'rwc'}"
             uri = True
         try:
             conn = sqlite3.connect(target, uri=uri, timeout=self.config.busy_timeout_s,
                                    isolation_level=None, check_same_thread=False)
-            if not self.readonly and self.path is not None:
-                conn.execute("PRAGMA journal_mode=WAL")
             sync = "FULL" if self.config.durability == "full" else "NORMAL"
             conn.execute(f"PRAGMA synchronous={sync}")
-            if not self.readonly:
-                conn.executescript(_SCHEMA)
         except sqlite3.DatabaseError as exc:
             raise DatabaseError(f"{where}: not a stablecues database or corrupt ({exc})") from exc
         return conn
 
-    def _check_or_write_meta(self) -> None:
-        voc = self.vocabulary
-        want = {
-            "format_version": str(FORMAT_VERSION),
-            "vocabulary_fingerprint": voc.fingerprint,
-            "vocabulary": json.dumps({"k": voc.k, "L": voc.levels, "words": voc.n_words,
-                                      "weighting": int(voc.weighting), "scoring": int(voc.scoring)}),
-            "levels_up": str(voc.levels_up),
-        }
+    def _wal(self) -> None:
         try:
-            have = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
+            with self._sql.lock:
+                self._sql.conn.execute("PRAGMA journal_mode=WAL")
+                self._sql.conn.execute(f"PRAGMA wal_autocheckpoint={_CHECKPOINT_PAGES}")
         except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self._where()}: not a stablecues database or corrupt ({exc})") from exc
-        if not have:
-            if self.readonly:
-                raise DatabaseError(f"{self._where()}: empty database (no metadata)")
-            with self._write():
-                self._conn.executemany("INSERT INTO meta VALUES (?, ?)", list(want.items()))
-            return
-        if have.get("format_version") != str(FORMAT_VERSION):
-            raise DatabaseError(
-                f"{self._where()}: database format {have.get('format_version')}, expected {FORMAT_VERSION}"
-            )
-        if have.get("vocabulary_fingerprint") != voc.fingerprint:
-            theirs = str(have.get("vocabulary_fingerprint", "?"))[:12]
-            raise DatabaseError(
-                f"{self._where()}: made with vocabulary {theirs}..., not with this vocabulary "
-                f"{voc.fingerprint[:12]}... (open it with the vocabulary it was built with)"
-            )
-        if have.get("levels_up") != str(voc.levels_up):
-            raise DatabaseError(
-                f"{self._where()}: direct index stored at levels_up={have.get('levels_up')}, "
-                f"the vocabulary uses {voc.levels_up}"
-            )
+            raise DatabaseError(f"{self._where()}: cannot use a write-ahead log ({exc})") from exc
 
-    @contextmanager
-    def _write(self) -> Iterator[None]:
-        if self.readonly:
-            raise DatabaseError(f"{self._where()}: opened read-only")
+    def _take_writer_lock(self) -> bool:
+        """Become the one writer of this file (and the keeper of its index directory)."""
+        if self._writer is not None:
+            return True
+        assert self.path is not None and self._schema.uuid is not None
+        directory = index_dir(self.path)
+        if directory.exists() and (directory.is_symlink() or not directory.is_dir()):
+            raise DatabaseError(f"{directory}: exists and is not the database's index directory")
         try:
-            self._conn.execute("BEGIN IMMEDIATE")
-        except sqlite3.OperationalError as exc:
-            raise DatabaseError(f"{self._where()}: cannot write ({exc}; another writer?)") from exc
+            directory.mkdir(exist_ok=True)
+            try:
+                lock = WriterLock(directory)
+            except BlockingIOError:
+                gc.collect()  # a Database dropped without close() may still hold the lock
+                lock = WriterLock(directory)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            raise DatabaseError(f"{directory}: cannot use the index directory "
+                                f"({exc.strerror or exc})") from exc
+        self._writer = lock
+        manifest = Manifest.parse(self._schema.manifest, self._where())
+        self._files = IndexFiles(
+            directory, self._schema.uuid, self.vocabulary.n_words, self.config.durability == "full",
+            self._sql.save_manifest,
+            functools.partial(_load_segments, self._sql, self._schema, self.vocabulary.n_words),
+            manifest.next_gen,
+        )
+        # the log's checkpoints (which sync the file) run in a thread of their own; SQLite's
+        # own stay, further apart, as a backstop
+        sync = "FULL" if self.config.durability == "full" else "NORMAL"
+        self._checkpointer = LogCheckpointer(self.path, self._sql.lock, sync)
+        with self._sql.lock:
+            self._sql.conn.execute(f"PRAGMA wal_autocheckpoint={_BACKSTOP_PAGES}")
+            self._sql.conn.execute(f"PRAGMA journal_size_limit={_BACKSTOP_PAGES * 4096}")
+        return True
+
+    def _count(self, conn: sqlite3.Connection) -> int:
+        # one aggregate per statement: SQLite reads MAX or MIN alone off the end of the id
+        # b-tree, but scans the whole table for both at once
+        (last,) = conn.execute("SELECT MAX(id) FROM entries").fetchone()
+        (first,) = conn.execute("SELECT MIN(id) FROM entries").fetchone()
+        if last is None:
+            return 0
+        last, first = int_value(last, self._where(), -1, "id"), int_value(first, self._where(), -1, "id")
+        if first != 0:
+            raise DatabaseError(f"{self._where()}: entry ids start at {first}, not 0 (corrupt)")
+        size = self.path.stat().st_size if self.path is not None else 0
+        if self.path is not None and (last >= 2**31 - 1 or last > 64 + size // 8):
+            raise DatabaseError(f"{self._where()}: entry ids up to {last} in a file of {size} bytes "
+                                "(corrupt)")
+        return last + 1
+
+    def _read_state(self) -> tuple[int, str | None, np.ndarray]:
         try:
-            yield
-        except BaseException:
-            self._conn.execute("ROLLBACK")
-            raise
-        else:
-            self._conn.execute("COMMIT")
+            with self._sql.snapshot() as conn:
+                n = self._count(conn)
+                row = conn.execute("SELECT value FROM meta WHERE key = 'index'").fetchone()
+                removed = np.zeros(0, np.int64)
+                if "removed" in self._schema.columns:
+                    rows = conn.execute("SELECT id FROM entries WHERE removed != 0").fetchall()
+                    removed = np.array([r[0] for r in rows if isinstance(r[0], int) and 0 <= r[0] < n],
+                                       np.int64)
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(f"{self._where()}: cannot read entries ({exc})") from exc
+        return n, (row[0] if row is not None and isinstance(row[0], str) else None), removed
+
+    def _load_index(self) -> None:
+        """Map the index files the manifest names and read the entries they do not cover."""
+        index = self.index
+        current = index.segments
+        for _ in range(5):
+            n, text, removed = self._read_state()
+            segments: list[Segment] = []
+            missing = False
+            if self.path is not None and self._schema.uuid is not None and index_dir(self.path).is_dir():
+                manifest = Manifest.parse(text, self._where())
+                if self._files is not None:
+                    self._files.next_gen = max(self._files.next_gen, manifest.next_gen)
+                    self._files.cleanup({r.file for r in manifest.segments})
+                reuse = {s.name: s for s in current if s.name is not None}
+                segments, missing = open_segments(index_dir(self.path), manifest, self._schema.uuid,
+                                                  self.vocabulary.n_words, n, reuse)
+            if not missing:
+                break
+        loaded = {(s.lo, s.hi): s for s in current if s.name is None}
+        full: list[Segment] = []
+        pos = 0
+        for seg in [*segments, None]:
+            end = n if seg is None else seg.lo
+            if end > pos:
+                full.extend(self._gap(pos, end, loaded))
+            if seg is not None:
+                full.append(seg)
+                pos = seg.hi
+        sessions = np.concatenate([np.asarray(s.sessions, np.int32) for s in full] or [np.zeros(0, np.int32)])
+        index.reset(full, n, sessions, removed)
+
+    def _gap(self, lo: int, hi: int, loaded: dict[tuple[int, int], Segment]) -> list[Segment]:
+        out = []
+        for a in range(lo, hi, _LOAD_BLOCK):
+            b = min(a + _LOAD_BLOCK, hi)
+            seg = loaded.get((a, b))
+            out.extend([seg] if seg is not None else _load_segments(self._sql, self._schema,
+                                                                      self.vocabulary.n_words, a, b))
+        return out
 
     def refresh(self) -> int:
-        """Load entries added (by this or another process) since the last refresh.
+        """Load entries added (by this or another process) since the last refresh, and follow
+        the writer's index changes and removals.
 
         Returns:
             how many entries were loaded.
         """
-        start = self._index.n_entries
-        loaded = 0
-        try:
-            cursor = self._conn.execute("SELECT id, bow FROM entries WHERE id >= ? ORDER BY id", (start,))
-            while True:
-                rows = cursor.fetchmany(4096)  # bounded memory: one sorted segment per chunk
-                if not rows:
-                    break
-                words_l, entries_l, weights_l = [], [], []
-                for eid, blob in rows:
-                    expect = start + loaded
-                    if eid != expect:
-                        raise DatabaseError(f"{self._where()}: entry ids are not contiguous at id {expect}")
-                    arrays = unpack_arrays(blob, f"{self._where()}: entry {eid}")
-                    words_l.append(arrays["words"])
-                    weights_l.append(arrays["weights"])
-                    entries_l.append(np.full(arrays["words"].shape[0], eid, np.int32))
-                    loaded += 1
-                self._index.add_many(np.concatenate(words_l), np.concatenate(entries_l),
-                                     np.concatenate(weights_l), start + loaded)
-        except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self._where()}: cannot read entries ({exc})") from exc
-        return loaded
+        before = len(self)
+        with self._add_lock:
+            if self._writer is None:
+                self._load_index()
+            else:
+                self._load_new_entries()
+        return len(self) - before
+
+    def _load_new_entries(self) -> None:
+        index = self.index
+        n = index.n_entries
+        rows = self._sql.rows(f"SELECT id, bow, {self._schema.session_sql} FROM entries WHERE id >= ? "
+                              "ORDER BY id", (n,))
+        for eid, blob, session in rows:
+            if eid != index.n_entries:
+                raise DatabaseError(f"{self._where()}: entry ids are not contiguous at id {index.n_entries}")
+            arrays = unpack_arrays(blob, f"{self._where()}: entry {eid}")
+            index.add(_bow_words(arrays, eid, self._where(), self.vocabulary.n_words), arrays["weights"],
+                      int_value(session, self._where(), eid, "session"))
 
     def close(self) -> None:
-        self._conn.close()
+        """Stop the index maintenance, close the file and give up the writer lock."""
+        index, self._index = self._index, None
+        if index is not None:
+            index.close()
+        checkpointer, self._checkpointer = self._checkpointer, None
+        if checkpointer is not None:
+            checkpointer.close()
+        sql = getattr(self, "_sql", None)
+        if sql is not None:
+            with sql.lock:
+                sql.conn.close()
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+
+    def __del__(self) -> None:
+        if sys.is_finalizing():  # its threads cannot run any more; the OS releases the rest
+            return
+        with contextlib.suppress(Exception):  # nothing to report to at collection time
+            self.close()
 
     def __enter__(self) -> Database:
         return self
@@ -219,9 +401,28 @@ class Database:
         self.close()
 
     def __len__(self) -> int:
-        return self._index.n_entries
+        """Entry ids given out so far (the next entry's id); removed entries keep theirs."""
+        return self.index.n_entries
 
     # ------------------------------------------------------------------ writing
+    def _check_session(self, session: object) -> int:
+        if (not isinstance(session, int | np.integer) or isinstance(session, bool)
+                or not 0 <= session <= MAX_SESSION):
+            raise InputError(f"session must be an integer in 0..{MAX_SESSION}, not {session!r}")
+        return int(session)
+
+    def _writable(self) -> None:
+        if self.readonly:
+            raise DatabaseError(f"{self._where()}: opened read-only")
+        if self.path is None or self._writer is not None or self._schema.uuid is None:
+            return
+        if not self._take_writer_lock():
+            raise DatabaseError(f"{self._where()}: another Database object or process is writing this "
+                                "file (close it first, or open this one with readonly=True)")
+        # another writer may have added entries or changed the index since this object opened
+        self._load_index()
+        self.index.set_store(self._files)
+
     def add(
         self,
         bow: BowVector,
@@ -232,6 +433,8 @@ class Database:
         pose: np.ndarray | None = None,
         meta: dict[str, Any] | None = None,
         arrays: dict[str, np.ndarray] | None = None,
+        *,
+        session: int | None = None,
     ) -> int:
         """Store an entry atomically and index it.
 
@@ -245,6 +448,7 @@ class Database:
             pose: optional (4, 4) camera-to-world pose.
             meta: JSON-serialisable metadata (image path, ...).
             arrays: extra named per-entry arrays to keep (e.g. 3D point uncertainties).
+            session: the entry's session (default: :attr:`session`).
 
         Returns:
             the entry's id (0, 1, 2, ... in order).
@@ -257,6 +461,38 @@ class Database:
         if fvec.levels_up != self.vocabulary.levels_up:
             raise InputError(f"feature vector at levels_up={fvec.levels_up}, database uses "
                              f"{self.vocabulary.levels_up}")
+        sess = self.session if session is None else self._check_session(session)
+        payload = self._payload(fvec, features, n, points3d, pose, arrays)
+        try:
+            meta_text = json.dumps(meta or {})
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"entry metadata is not JSON-serialisable: {exc}") from exc
+        weights = bow.weights.astype(np.float32)
+        bow_blob = pack_buffer({"words": bow.words, "weights": weights})
+        payload_blob = pack_buffer(payload)
+        with self._add_lock:
+            self._writable()
+            index = self.index
+            eid = index.n_entries
+            try:
+                with self._sql.lock:  # one statement: its own transaction, atomic
+                    self._sql.conn.execute(
+                        "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
+                        "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (eid, float(timestamp), n, bow_blob, payload_blob, meta_text, sess),
+                    )
+            except sqlite3.IntegrityError as exc:
+                raise DatabaseError(f"{self._where()}: entry {eid} already on disk: another writer "
+                                    "is using this file") from exc
+            except sqlite3.DatabaseError as exc:
+                raise DatabaseError(f"{self._where()}: cannot add entry ({exc})") from exc
+            index.add(bow.words, weights, sess)
+        return eid
+
+    def _payload(
+        self, fvec: FeatureVector, features: Features, n: int, points3d: np.ndarray | None,
+        pose: np.ndarray | None, arrays: dict[str, np.ndarray] | None,
+    ) -> dict[str, np.ndarray]:
         payload: dict[str, np.ndarray] = {"fvec": fvec.nodes}
         if self.config.store_descriptors:
             payload.update(keypoints=features.keypoints, descriptors=features.descriptors,
@@ -270,33 +506,106 @@ class Database:
             check_array("pose", pose, shape=(4, 4))
             payload["pose"] = np.asarray(pose, np.float64)
         for name, arr in (arrays or {}).items():
-            payload["x_" + name] = np.asarray(arr)
-        try:
-            meta_text = json.dumps(meta or {})
-        except TypeError as exc:
-            raise InputError(f"entry metadata is not JSON-serialisable: {exc}") from exc
-        bow_blob = pack_arrays({"words": bow.words, "weights": bow.weights.astype(np.float32)})
-        eid = self._index.n_entries
-        try:
-            with self._write():
-                # another process may have added entries (ids are 0..n-1, so MAX(id) + 1 is the
-                # count, read from the end of the rowid b-tree instead of scanning the table)
-                (last,) = self._conn.execute("SELECT MAX(id) FROM entries").fetchone()
-                count = 0 if last is None else int(last) + 1
-                if count != eid:
-                    raise DatabaseError(
-                        f"{self._where()}: {count} entries on disk but {eid} loaded: "
-                        "another writer is using this file"
-                    )
-                self._conn.execute(
-                    "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta) "
-                    "VALUES (?, ?, ?, ?, ?, ?)",
-                    (eid, float(timestamp), n, bow_blob, pack_arrays(payload), meta_text),
-                )
-        except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self._where()}: cannot add entry ({exc})") from exc
-        self._index.add(bow.words, bow.weights.astype(np.float32))
-        return eid
+            a = np.asarray(arr)
+            if a.dtype.kind not in "biufc":
+                raise InputError(f"extra array {name!r}: dtype {a.dtype} cannot be stored (numbers only)")
+            payload["x_" + name] = a
+        return payload
+
+    def new_session(self) -> int:
+        """Start a new session (one more than any session so far); returns its id."""
+        sessions = self.index.sessions()
+        latest = int(sessions.max()) if sessions.size else -1
+        self.session = self._check_session(max(latest, self.session) + 1)
+        return self.session
+
+    def remove(
+        self,
+        ids: Iterable[int] | None = None,
+        *,
+        session: int | None = None,
+        before: float | None = None,
+        after: float | None = None,
+    ) -> int:
+        """Remove entries: those matching every filter given (at least one).
+
+        A removed entry leaves every query at once; its id is never given out again, and
+        :meth:`entry` refuses it. Its data stays in the file until :meth:`compact`.
+
+        Args:
+            ids: entry ids.
+            session: entries of this session.
+            before: entries with a timestamp < before.
+            after: entries with a timestamp >= after.
+
+        Returns:
+            how many entries were removed (entries already removed do not count).
+        """
+        where, args = self._removal_filter(ids, session, before, after)
+        with self._add_lock:
+            self._writable()
+            try:
+                with self._sql.write() as conn:
+                    rows = conn.execute(f"SELECT id FROM entries WHERE removed = 0 AND {where}",
+                                        args).fetchall()
+                    gone = np.array(sorted(r[0] for r in rows), np.int64)
+                    conn.executemany(
+                        "UPDATE entries SET removed = 1, n_features = 0, bow = ?, payload = ?, meta = 'null' "
+                        "WHERE id = ?", [(_EMPTY_BOW, _EMPTY_PAYLOAD, int(i)) for i in gone])
+            except sqlite3.DatabaseError as exc:
+                raise DatabaseError(f"{self._where()}: cannot remove entries ({exc})") from exc
+            if gone.size:
+                self.index.remove(gone)
+                with self._cache_lock:
+                    for i in gone.tolist():
+                        self._cache.pop(i, None)
+        return int(gone.size)
+
+    def _removal_filter(
+        self, ids: Iterable[int] | None, session: int | None, before: float | None, after: float | None
+    ) -> tuple[str, list[Any]]:
+        clauses: list[str] = []
+        args: list[Any] = []
+        if ids is not None:
+            arr = np.unique(np.asarray(list(ids), np.int64))
+            arr = arr[(arr >= 0) & (arr < len(self))]
+            clauses.append("id IN (SELECT value FROM json_each(?))")
+            args.append(json.dumps(arr.tolist()))
+        if session is not None:
+            clauses.append("session = ?")
+            args.append(self._check_session(session))
+        for value, op in ((before, "<"), (after, ">=")):
+            if value is not None:
+                if not isinstance(value, int | float) or math.isnan(value):
+                    raise InputError(f"time limits must be numbers, not {value!r}")
+                clauses.append(f"timestamp {op} ?")
+                args.append(float(value))
+        if not clauses:
+            raise InputError("remove() needs ids, a session or a time limit")
+        return " AND ".join(clauses), args
+
+    def compact(self, vacuum: bool = True) -> None:
+        """Reclaim the space of removed entries: rewrite the index without their postings and
+        (``vacuum``) the file without their data. Takes about as long as reading the map."""
+        with self._add_lock:
+            self._writable()
+            self.index.compact()
+        if vacuum:
+            try:
+                with self._sql.lock:
+                    self._sql.conn.execute("VACUUM")
+                    if self.path is not None:  # hand the space back now, not at the next checkpoint
+                        self._sql.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            except sqlite3.DatabaseError as exc:
+                raise DatabaseError(f"{self._where()}: cannot compact the file ({exc})") from exc
+
+    def flush(self) -> None:
+        """Finish the index maintenance now: sort the latest additions and merge segments
+        (and, for a file, write them all), so that a reopen reads nothing back."""
+        with self._add_lock:
+            if not self.readonly:
+                self._writable()
+            self.index.flush()
 
     # ------------------------------------------------------------------ reading
     def query(
@@ -306,6 +615,9 @@ class Database:
         exclude_recent: int = 0,
         max_id: int | None = None,
         min_id: int = 0,
+        *,
+        sessions: int | Iterable[int] | None = None,
+        exclude_sessions: int | Iterable[int] | None = None,
     ) -> list[QueryResult]:
         """Entries most similar to ``bow``, best first.
 
@@ -315,6 +627,8 @@ class Database:
             exclude_recent: leave out the latest ``exclude_recent`` entries.
             max_id: only entries with id < max_id.
             min_id: only entries with id >= min_id.
+            sessions: only entries of these sessions (None: every session).
+            exclude_sessions: leave out entries of these sessions (e.g. the current one).
 
         Returns:
             list of QueryResult(entry_id, score); for KL scoring lower scores rank first.
@@ -322,7 +636,8 @@ class Database:
         hi = len(self) - max(int(exclude_recent), 0)
         if max_id is not None:
             hi = min(hi, int(max_id))
-        ids, scores = self._index.scores(bow.words, bow.weights, max_id=hi, min_id=min_id)
+        ids, scores = self.index.scores(bow.words, bow.weights, max_id=hi, min_id=min_id)
+        ids, scores = self._in_sessions(ids, scores, sessions, exclude_sessions)
         if ids.size == 0:
             return []
         key = -scores if self._higher_better else scores
@@ -333,92 +648,223 @@ class Database:
             order = np.lexsort((ids, key))
         return [QueryResult(int(ids[i]), float(scores[i])) for i in order]
 
-    def scores(self, bow: BowVector, max_id: int | None = None) -> np.ndarray:
+    def _in_sessions(
+        self, ids: np.ndarray, scores: np.ndarray, sessions: int | Iterable[int] | None,
+        exclude: int | Iterable[int] | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if (sessions is None and exclude is None) or ids.size == 0:
+            return ids, scores
+        of = self.index.sessions()[ids]
+        keep = np.ones(ids.size, bool)
+        if sessions is not None:
+            keep &= np.isin(of, _session_ids(sessions, "sessions"))
+        if exclude is not None:
+            keep &= ~np.isin(of, _session_ids(exclude, "exclude_sessions"))
+        return ids[keep], scores[keep]
+
+    def scores(
+        self,
+        bow: BowVector,
+        max_id: int | None = None,
+        *,
+        sessions: int | Iterable[int] | None = None,
+        exclude_sessions: int | Iterable[int] | None = None,
+    ) -> np.ndarray:
         """Dense (len(self),) float64 scores of the query against every entry (0 when no word
-        is shared; for KL, +inf)."""
+        is shared, or the entry is removed or left out by the session filters; for KL, +inf)."""
+        ids, s = self.index.scores(bow.words, bow.weights, max_id=max_id)
+        ids, s = self._in_sessions(ids, s, sessions, exclude_sessions)
         n = len(self)
         out = np.zeros(n) if self._higher_better else np.full(n, np.inf)
-        ids, s = self._index.scores(bow.words, bow.weights, max_id=max_id)
         out[ids] = s
         return out
+
+    def _row(self, eid: int, columns: str) -> tuple[Any, ...]:
+        if not 0 <= eid < len(self):
+            raise InputError(f"entry id {eid} outside 0..{len(self) - 1}")
+        rows = self._sql.rows(f"SELECT {columns}, {self._schema.removed_sql} FROM entries WHERE id = ?",
+                              (eid,), f"entry {eid}")
+        if not rows:
+            raise DatabaseError(f"{self._where()}: entry {eid} is missing")
+        if rows[0][-1]:
+            raise InputError(f"entry {eid} was removed from {self._where()}")
+        return tuple(rows[0][:-1])
 
     def entry(self, entry_id: int) -> Entry:
         """Everything stored about one entry (cached)."""
         eid = int(entry_id)
-        hit = self._cache.get(eid)
-        if hit is not None:
-            self._cache.move_to_end(eid)
-            return hit
-        if not 0 <= eid < len(self):
-            raise InputError(f"entry id {eid} outside 0..{len(self) - 1}")
-        try:
-            row = self._conn.execute(
-                "SELECT timestamp, bow, payload, meta FROM entries WHERE id = ?", (eid,)
-            ).fetchone()
-        except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self._where()}: cannot read entry {eid} ({exc})") from exc
-        if row is None:
-            raise DatabaseError(f"{self._where()}: entry {eid} is missing")
-        ts, bow_blob, payload_blob, meta_text = row
-        what = f"{self._where()}: entry {eid}"
+        with self._cache_lock:
+            hit = self._cache.get(eid)
+            if hit is not None:
+                self._cache.move_to_end(eid)
+                return hit
+        ts, bow_blob, payload_blob, meta_text = self._row(eid, "timestamp, bow, payload, meta")
+        where = self._where()
+        what = f"{where}: entry {eid}"
         b = unpack_arrays(bow_blob, what)
         p = unpack_arrays(payload_blob, what)
-        size = tuple(int(x) for x in p["image_size"])
-        n = int(p["fvec"].shape[0])
-        if "descriptors" in p:
-            feats = Features(p["keypoints"], p["descriptors"], p["octaves"], p["angles"],
-                             p["responses"], p["sizes"], (size[0], size[1]))
-        else:
-            feats = Features.empty((size[0], size[1]))
+        feats, nodes = _features(p, what)
+        meta = meta_value(meta_text, where, eid)
+        words = _bow_words(b, eid, where, self.vocabulary.n_words)
         entry = Entry(
             entry_id=eid,
-            bow=BowVector(b["words"], b["weights"].astype(np.float64)),
-            fvec=FeatureVector(p["fvec"], self.vocabulary.levels_up),
+            bow=BowVector(words, np.asarray(b["weights"], np.float64)),
+            fvec=FeatureVector(nodes, self.vocabulary.levels_up),
             features=feats,
-            points3d=p.get("points3d"),
-            timestamp=float(ts) if ts is not None else math.nan,
-            pose=p.get("pose"),
-            meta=json.loads(meta_text),
+            points3d=_optional(p, "points3d", (nodes.shape[0], 3), what),
+            timestamp=timestamp_value(ts, where, eid),
+            pose=_optional(p, "pose", (4, 4), what),
+            meta=meta if meta is not None else {},
         )
-        if n and len(feats) and len(feats) != n:
-            raise DatabaseError(f"{what}: {len(feats)} features but {n} direct-index nodes")
-        self._cache[eid] = entry
-        if len(self._cache) > self.config.cache_entries:
-            self._cache.popitem(last=False)
+        with self._cache_lock:
+            self._cache[eid] = entry
+            while len(self._cache) > self.config.cache_entries:
+                self._cache.popitem(last=False)
         return entry
 
     def extra_arrays(self, entry_id: int) -> dict[str, np.ndarray]:
         """The extra arrays stored with an entry (``arrays=`` of :meth:`add`)."""
-        row = self._conn.execute("SELECT payload FROM entries WHERE id = ?", (int(entry_id),)).fetchone()
-        if row is None:
-            raise InputError(f"entry id {entry_id} not in {self._where()}")
-        p = unpack_arrays(row[0], f"{self._where()}: entry {entry_id}")
+        (blob,) = self._row(int(entry_id), "payload")
+        p = unpack_arrays(blob, f"{self._where()}: entry {entry_id}")
         return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
 
     def column(self, name: str) -> list[Any]:
-        """One scalar column of every entry in id order: "timestamp", "n_features" or "meta"
-        (decoded from JSON)."""
-        if name not in ("timestamp", "n_features", "meta"):
-            raise InputError(f"unknown entry column {name!r}")
-        try:
-            rows = self._conn.execute(f"SELECT {name} FROM entries ORDER BY id").fetchall()
-        except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self._where()}: cannot read entries ({exc})") from exc
-        values = [r[0] for r in rows[: len(self)]]
+        """One scalar column of every entry id in order: "timestamp" (NaN when unknown),
+        "n_features", "session" or "meta" (decoded from JSON). Removed entries read as NaN,
+        0, their session and None."""
+        sql_name = {"timestamp": "timestamp", "n_features": "n_features", "meta": "meta",
+                    "session": self._schema.session_sql}.get(name)
+        if sql_name is None:
+            raise InputError(f"unknown entry column {name!r}; known: timestamp, n_features, session, meta")
+        n = len(self)
+        rows = self._sql.rows(f"SELECT id, {sql_name}, {self._schema.removed_sql} FROM entries "
+                              "WHERE id < ? ORDER BY id", (n,))
+        where = self._where()
+        if len(rows) != n:
+            raise DatabaseError(f"{where}: {len(rows)} entries on disk, {n} expected (corrupt)")
         if name == "meta":
-            return [json.loads(v) for v in values]
+            return [meta_value(v, where, i) for i, v, _ in rows]
         if name == "timestamp":
-            return [math.nan if v is None else float(v) for v in values]
-        return values
+            return [math.nan if gone else timestamp_value(v, where, i) for i, v, gone in rows]
+        return [int_value(v, where, i, name) for i, v, _ in rows]
+
+    def ids(self) -> np.ndarray:
+        """(K,) int64 ids of the entries not removed."""
+        alive = self.index.alive()
+        n = len(self)
+        return np.arange(n) if alive is None else np.flatnonzero(alive[:n])
+
+    def sessions(self) -> dict[int, int]:
+        """Entries (not removed) per session."""
+        ids = self.ids()
+        s, counts = np.unique(self.index.sessions()[ids], return_counts=True)
+        return dict(zip(s.tolist(), counts.tolist(), strict=True))
+
+    def check(self, repair: bool = False) -> list[str]:
+        """Check the index files' checksums and entry ids, and the file's integrity.
+
+        Args:
+            repair: rebuild index segments that fail from the entries.
+
+        Returns:
+            the problems found (empty: all good).
+        """
+        n = len(self)
+        bad = [(s, p) for s in self.index.segments if (p := verify_segment(s, n)) is not None]
+        problems = [p for _, p in bad]
+        rows = self._sql.rows("PRAGMA quick_check", what="the file's integrity")
+        problems += [f"{self._where()}: {r[0]}" for r in rows if r[0] != "ok"]
+        if repair and bad:
+            with self._add_lock:
+                self._writable()
+                self._rebuild([s for s, _ in bad])
+        return problems
+
+    def _rebuild(self, segments: list[Segment]) -> None:
+        for seg in segments:
+            new = _load_segments(self._sql, self._schema, self.vocabulary.n_words, seg.lo, seg.hi)
+            self.index.replace(seg, new)
 
     def stats(self) -> dict[str, float]:
-        """Sizes: entries, postings, index bytes in memory, file bytes on disk."""
+        """Sizes: entries, postings, segments, index bytes (mapped or in memory), file bytes on
+        disk (database, its log and its index files)."""
         file_bytes = 0
         if self.path is not None:
             for suffix in ("", "-wal"):
                 f = Path(str(self.path) + suffix)
                 if f.exists():
                     file_bytes += f.stat().st_size
-        return {"entries": len(self), "postings": self._index.n_postings,
-                "index_bytes": self._index.nbytes, "file_bytes": file_bytes,
+            d = index_dir(self.path)
+            if d.is_dir():
+                file_bytes += sum(f.stat().st_size for f in d.glob("seg-*.sci"))
+        index = self.index
+        return {"entries": len(self), "live": int(self.ids().size), "postings": index.n_postings,
+                "segments": len(index.segments), "index_bytes": index.nbytes, "file_bytes": file_bytes,
                 "time": time.time()}
+
+
+# ---------------------------------------------------------------------------- helpers
+def _bow_words(arrays: dict[str, np.ndarray], eid: int, where: str, n_words: int) -> np.ndarray:
+    words, weights = arrays.get("words"), arrays.get("weights")
+    if (words is None or weights is None or words.ndim != 1 or words.shape != weights.shape
+            or words.dtype.kind not in "iu" or weights.dtype.kind != "f"):
+        raise DatabaseError(f"{where}: entry {eid}: stored BoW vector is malformed")
+    w = words.astype(np.int32, copy=False)
+    if w.size and (int(w.min()) < 0 or int(w.max()) >= n_words or bool(np.any(w[1:] <= w[:-1]))):
+        raise DatabaseError(f"{where}: entry {eid}: stored BoW words are not sorted ids below {n_words}")
+    return w
+
+
+def _features(p: dict[str, np.ndarray], what: str) -> tuple[Features, np.ndarray]:
+    try:
+        nodes = np.asarray(p["fvec"], np.int32)
+        size = tuple(int(x) for x in p["image_size"])
+        if nodes.ndim != 1 or len(size) != 2:
+            raise ValueError("bad direct index or image size")
+        if "descriptors" in p:
+            feats = Features(p["keypoints"], p["descriptors"], p["octaves"], p["angles"],
+                             p["responses"], p["sizes"], (size[0], size[1]))
+        else:
+            feats = Features.empty((size[0], size[1]))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise DatabaseError(f"{what}: stored features are malformed ({str(exc)[:80]})") from None
+    n = int(nodes.shape[0])
+    if n and len(feats) and len(feats) != n:
+        raise DatabaseError(f"{what}: {len(feats)} features but {n} direct-index nodes")
+    return feats, nodes
+
+
+def _optional(p: dict[str, np.ndarray], name: str, shape: tuple[int, int], what: str) -> np.ndarray | None:
+    a = p.get(name)
+    if a is not None and a.shape != shape:
+        raise DatabaseError(f"{what}: stored {name} has shape {a.shape}, expected {shape}")
+    return a
+
+
+def _load_segments(sql: Sql, schema: Schema, n_words: int, lo: int, hi: int) -> list[Segment]:
+    """In-memory segments of entries ``lo .. hi - 1`` read from the entries' BoW vectors
+    (what the index files would hold), one per block of entries."""
+    out: list[Segment] = []
+    for a in range(lo, hi, _LOAD_BLOCK):
+        b = min(a + _LOAD_BLOCK, hi)
+        rows = sql.rows(f"SELECT id, bow, {schema.session_sql} FROM entries WHERE id >= ? AND id < ? "
+                        "ORDER BY id", (a, b))
+        words_l, post_l, sessions = [], [], np.zeros(b - a, np.int32)
+        for k, (eid, blob, session) in enumerate(rows):
+            if eid != a + k:
+                raise DatabaseError(f"{sql.where}: entry ids are not contiguous at id {a + k}")
+            arrays = unpack_arrays(blob, f"{sql.where}: entry {eid}")
+            words = _bow_words(arrays, eid, sql.where, n_words)
+            words_l.append(words)
+            post_l.append(pack_postings(np.full(words.shape[0], eid, np.int32), arrays["weights"]))
+            s = int_value(session, sql.where, eid, "session")
+            if not 0 <= s <= MAX_SESSION:
+                raise DatabaseError(f"{sql.where}: entry {eid}: session {s} outside 0..{MAX_SESSION}")
+            sessions[k] = s
+        if len(rows) != b - a:
+            raise DatabaseError(f"{sql.where}: entry ids are not contiguous at id {a + len(rows)}")
+        words = np.concatenate(words_l) if words_l else np.zeros(0, np.int32)
+        post = np.concatenate(post_l) if post_l else empty_postings()
+        out.append(sort_block(words, post, a, b, sessions, n_words))
+    return out
+

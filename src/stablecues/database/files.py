@@ -1,0 +1,340 @@
+"""The index directory next to a database file: segment files, the writer lock, the manifest.
+
+``map.sqlite`` keeps its inverse index in ``map.sqlite-index/``: one file per segment
+(``seg-00000042.sci``, see :mod:`.segments`) and ``writer.lock``. Which files make up the
+index is recorded in the database itself (the ``index`` row of its ``meta`` table, the
+*manifest*), so a change of segments is one SQLite transaction:
+
+1. a job writes its new segment file completely (and, with ``durability="full"``, syncs it
+   and the directory);
+2. one transaction replaces the manifest;
+3. the files it no longer names are deleted.
+
+A process killed anywhere in between leaves either the old manifest with an unused new file
+or the new manifest with unused old files; the next writer deletes the files the manifest
+does not name. Entries the manifest does not cover (the latest additions, or a segment file
+that is missing or corrupt) are read back from the database's entries when it is opened.
+Only files named like segments are ever deleted, and only inside the index directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import re
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import DatabaseError
+from .segments import FileSink, Segment, map_segment
+
+log = logging.getLogger(__name__)
+
+INDEX_SUFFIX = "-index"
+MANIFEST_VERSION = 1
+_SEGMENT_NAME = re.compile(r"seg-(\d{8,12})\.sci")
+_MAX_SEGMENTS = 4096  # a manifest naming more is not one this code wrote
+
+
+def index_dir(db_path: Path) -> Path:
+    """The index directory of a database file."""
+    return Path(str(db_path) + INDEX_SUFFIX)
+
+
+def remove_database(db_path: str | Path) -> None:
+    """Delete a database file, its SQLite side files and its index directory (only the files
+    stablecues writes there)."""
+    path = Path(db_path)
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        Path(str(path) + suffix).unlink(missing_ok=True)
+    d = index_dir(path)
+    if d.is_dir() and not d.is_symlink():
+        for f in d.iterdir():
+            if _SEGMENT_NAME.fullmatch(f.name) or f.name in ("writer.lock",) or f.name.endswith(".tmp"):
+                f.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            d.rmdir()
+
+
+@dataclass
+class SegmentRecord:
+    file: str
+    lo: int
+    hi: int
+    postings: int
+    crc: int
+
+
+@dataclass
+class Manifest:
+    """Which segment files make up the index, in entry order."""
+
+    next_gen: int = 0
+    segments: list[SegmentRecord] = field(default_factory=list)
+
+    def dumps(self) -> str:
+        return json.dumps({"version": MANIFEST_VERSION, "next_gen": self.next_gen,
+                           "segments": [[s.file, s.lo, s.hi, s.postings, s.crc] for s in self.segments]},
+                          separators=(",", ":"))
+
+    @staticmethod
+    def parse(text: str | None, where: str) -> Manifest:
+        """Read a manifest; one that does not parse or validate is treated as empty (the
+        index is then rebuilt from the entries), with a warning."""
+        if text is None:
+            return Manifest()
+        try:
+            return Manifest._parse(text)
+        except (ValueError, TypeError, KeyError, RecursionError) as exc:
+            log.warning("%s: index manifest is corrupt (%s); rebuilding the index from the entries",
+                        where, exc)
+            return Manifest()
+
+    @staticmethod
+    def _parse(text: str) -> Manifest:
+        if len(text) > 64 * _MAX_SEGMENTS:
+            raise ValueError("manifest too long")
+        data = json.loads(text)
+        if not isinstance(data, dict) or data.get("version") != MANIFEST_VERSION:
+            raise ValueError("unknown manifest version")
+        gen = data["next_gen"]
+        rows = data["segments"]
+        if not isinstance(gen, int) or not 0 <= gen < 10**12 or not isinstance(rows, list):
+            raise ValueError("bad fields")
+        if len(rows) > _MAX_SEGMENTS:
+            raise ValueError(f"{len(rows)} segments")
+        out = Manifest(gen)
+        pos = 0
+        for row in rows:
+            if not (isinstance(row, list) and len(row) == 5 and isinstance(row[0], str)
+                    and all(isinstance(x, int) and not isinstance(x, bool) for x in row[1:])):
+                raise ValueError(f"bad segment record {row!r:.80}")
+            name, lo, hi, postings, crc = row
+            if not _SEGMENT_NAME.fullmatch(name):
+                raise ValueError(f"bad segment file name {name!r:.80}")
+            if not (pos <= lo <= hi < 2**31 and 0 <= postings < 2**40 and 0 <= crc < 2**32):
+                raise ValueError(f"bad segment range {lo}..{hi}")
+            pos = hi
+            out.segments.append(SegmentRecord(name, lo, hi, postings, crc))
+        return out
+
+
+class WriterLock:
+    """An exclusive lock on the index directory, held by the one writing Database object."""
+
+    def __init__(self, directory: Path) -> None:
+        self.fd = os.open(directory / "writer.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(self.fd)
+            raise
+
+    def release(self) -> None:
+        if self.fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+            self.fd = -1
+
+
+def _unlink(paths: list[Path], step: int = 64 << 20) -> None:
+    """Delete files, a large one a slice at a time: freeing gigabytes at once (and, on a disk
+    mounted with ``discard``, trimming them) makes every sync on the disk wait meanwhile."""
+    for path in paths:
+        with contextlib.suppress(OSError):
+            fd = os.open(path, os.O_WRONLY)
+            try:
+                size = os.fstat(fd).st_size
+                while size > step:
+                    size -= step
+                    os.ftruncate(fd, size)
+                    time.sleep(0.002)
+            finally:
+                os.close(fd)
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+class IndexFiles:
+    """Segment files of one database (the inverse index's store).
+
+    Args:
+        directory: the index directory (exists).
+        uuid: the database's 16-byte id, written into every segment file.
+        n_words: vocabulary size.
+        fsync: sync files and the directory before a manifest names them.
+        save_manifest: writes the manifest into the database (one transaction).
+        rebuild: segments of entries ``lo .. hi - 1`` built from the database's entries.
+        next_gen: first free file number.
+    """
+
+    def __init__(
+        self, directory: Path, uuid: bytes, n_words: int, fsync: bool,
+        save_manifest: Callable[[str], None], rebuild: Callable[[int, int], list[Segment]],
+        next_gen: int,
+    ) -> None:
+        self.directory = directory
+        self.uuid = uuid
+        self.n_words = n_words
+        self.fsync = fsync
+        self._save = save_manifest
+        self._rebuild = rebuild
+        self.next_gen = next_gen
+
+    def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
+        path = self.directory / f"seg-{self.next_gen:08d}.sci"
+        self.next_gen += 1
+        return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync)
+
+    def commit(self, segments: Sequence[Segment]) -> None:
+        if self.fsync:
+            fd = os.open(self.directory, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        records = [SegmentRecord(s.name, s.lo, s.hi, s.size, s.crc) for s in segments if s.name is not None]
+        self._save(Manifest(self.next_gen, records).dumps())
+
+    def discard(self, segments: Sequence[Segment]) -> None:
+        """Delete replaced segment files, in a thread of its own: freeing a large file's blocks
+        takes a while (a disk mounted with ``discard`` trims them first), and no add should
+        wait for it. A file left by a process that ended meanwhile is deleted at the next open."""
+        paths = [self.directory / s.name for s in segments
+                 if s.name is not None and _SEGMENT_NAME.fullmatch(s.name)]
+        if paths:
+            threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True).start()
+
+    def rebuild(self, lo: int, hi: int) -> list[Segment]:
+        return self._rebuild(lo, hi)
+
+    def cleanup(self, keep: set[str]) -> None:
+        """Delete segment files the manifest does not name (left by a killed process)."""
+        for f in self.directory.iterdir():
+            m = _SEGMENT_NAME.fullmatch(f.name)
+            if m:
+                self.next_gen = max(self.next_gen, int(m.group(1)) + 1)
+            if (m and f.name not in keep) or (f.name.startswith("seg-") and f.name.endswith(".tmp")):
+                with contextlib.suppress(OSError):
+                    f.unlink()
+
+
+class LogCheckpointer:
+    """Copies the database's write-ahead log into the file from a thread of its own, so that
+    no add waits for a checkpoint (SQLite's automatic one runs in the committing thread and
+    syncs the file, stalling that add for as long as the disk takes).
+
+    SQLite starts the log over only when a write begins after everything in it has been
+    copied; with a writer that never pauses, that moment would never come and the log would
+    grow. So the bulk is copied while adds go on, and the few pages added meanwhile (at most
+    ``locked_pages``) are copied while ``lock`` holds the next add back.
+
+    Args:
+        db_path: the database file.
+        lock: the lock every write on the writer's connection holds.
+        synchronous: the writer's ``PRAGMA synchronous`` (the checkpoint syncs as it does).
+        every_s: how often to look at the log.
+        locked_pages: most log pages copied while adds wait.
+        slow_s: no copying while adds wait after a checkpoint that took this long.
+    """
+
+    def __init__(
+        self, db_path: Path, lock: threading.RLock, synchronous: str, every_s: float = 0.05,
+        locked_pages: int = 256, slow_s: float = 0.005,
+    ) -> None:
+        self.uri = f"{db_path.resolve().as_uri()}?mode=rw"
+        self.lock = lock
+        self.synchronous = synchronous
+        self.every_s = every_s
+        self.locked_pages = locked_pages
+        self.slow_s = slow_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stablecues-checkpoint", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            conn = sqlite3.connect(self.uri, uri=True, timeout=1.0, isolation_level=None,
+                                   check_same_thread=False)
+        except sqlite3.Error as exc:  # SQLite's own checkpoints carry on
+            log.warning("log checkpoints stay in the adding thread: %s", exc)
+            return
+        try:
+            conn.execute(f"PRAGMA synchronous={self.synchronous}")
+            while not self._stop.wait(self.every_s):
+                self.checkpoint(conn)
+        except sqlite3.Error as exc:
+            log.warning("log checkpoints stay in the adding thread: %s", exc)
+        finally:
+            conn.close()
+
+    def checkpoint(self, conn: sqlite3.Connection) -> tuple[int, int]:
+        """One round; returns the log's pages and those copied."""
+        frames = copied = 0
+        took = 0.0
+        for attempt in range(8):
+            t = time.perf_counter()
+            busy, frames, copied = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+            took = time.perf_counter() - t
+            if busy:  # the writer was committing: SQLite could not read the log's header
+                time.sleep(0.002 * (attempt + 1))
+                continue
+            if frames - copied <= self.locked_pages:
+                break
+        # the last few pages while adds wait, unless the disk is slow to sync just now (the
+        # log then grows a little until a later round)
+        if 0 < frames - copied <= self.locked_pages and took < self.slow_s:
+            with self.lock:
+                busy, frames, copied = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+        return frames, copied
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=60)
+
+
+def open_segments(
+    directory: Path, manifest: Manifest, uuid: bytes, n_words: int, n_entries: int,
+    reuse: dict[str, Segment] | None = None,
+) -> tuple[list[Segment], bool]:
+    """Map the manifest's segment files; a corrupt or mismatched file is left out (with a
+    warning), and the entries it covered are then read from the database.
+
+    Args:
+        reuse: segments already mapped, by file name.
+
+    Returns:
+        the segments, and whether a file was missing (a writer may have replaced it since
+        the manifest was read: read the manifest again).
+    """
+    out: list[Segment] = []
+    missing = False
+    for rec in manifest.segments:
+        path = directory / rec.file
+        old = (reuse or {}).get(rec.file)
+        if old is not None and (old.lo, old.hi, old.size, old.crc) == (rec.lo, rec.hi, rec.postings, rec.crc):
+            out.append(old)
+            continue
+        try:
+            if rec.hi > n_entries:
+                raise DatabaseError(f"{path}: covers entries up to {rec.hi - 1}, the database has "
+                                    f"{n_entries}")
+            if not path.is_file():
+                missing = True
+                raise DatabaseError(f"{path}: index file is missing")
+            seg = map_segment(path, uuid, n_words)
+            if (seg.lo, seg.hi, seg.size, seg.crc) != (rec.lo, rec.hi, rec.postings, rec.crc):
+                raise DatabaseError(f"{path}: index file does not match the manifest")
+        except DatabaseError as exc:
+            log.warning("%s; its entries are read from the database instead", exc)
+            continue
+        out.append(seg)
+    return out, missing

@@ -1,0 +1,538 @@
+"""Segments of the inverse index: immutable runs of postings sorted by word.
+
+A posting is one (entry id, weight) pair of 8 bytes (:data:`POSTING`), moved around as one
+int64 (:func:`pack_postings`, :func:`split`: NumPy copies 8-byte items far faster than a
+structured dtype). A segment holds the
+postings of the entries ``lo .. hi - 1``, sorted by word and, within a word, by entry id, plus
+the session id of every entry it covers. Small segments keep the word of every posting
+(``words``, binary search per query word); large ones keep a CSR table instead (``indptr``,
+one offset per word), so a query finds each word's run in O(1) and no word array is stored.
+
+A segment lives in memory or in a file of the index directory, memory-mapped read-only:
+
+=========  ==========================================================================
+offset     content
+=========  ==========================================================================
+0          header, 128 bytes: ``b"SCIX"``, version, form (0 words, 1 CSR), database
+           id (16 bytes), words in the vocabulary, lo, hi, postings, CRC-32 of the
+           body, CRC-32 of the header fields
+128        postings, (P,) little-endian (int32 entry, float32 weight)
+..         words (P,) int32, or indptr (W + 1,) int64
+..         sessions (hi - lo,) int32
+=========  ==========================================================================
+
+Every size follows from the header, and the file's length must match it exactly before
+anything is mapped, so a hostile or truncated file is refused without allocating.
+:class:`MergeJob` merges adjacent segments (and drops removed entries) one bounded step at a
+time, so that no step of index maintenance stalls the thread that runs it.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import struct
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ..errors import DatabaseError
+
+POSTING = np.dtype([("entry", "<i4"), ("weight", "<f4")])
+SEGMENT_MAGIC = b"SCIX"
+SEGMENT_VERSION = 1
+HEADER_SIZE = 128
+_HEADER = struct.Struct("<4sHBx16sQQQQI")  # magic .. body CRC; the header CRC follows
+FORM_WORDS, FORM_CSR = 0, 1
+CSR_MIN = 1 << 18  # segments with at least max(CSR_MIN, 2 * n_words) postings get a CSR table
+
+
+def csr_threshold(n_words: int) -> int:
+    """Postings from which a segment keeps a CSR table (its indptr then costs at most half
+    of what its postings take)."""
+    return max(CSR_MIN, 2 * int(n_words))
+
+
+def split(postings64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) int32 entry ids and (P,) float32 weights (strided views) of postings held as int64."""
+    return postings64.view("<i4")[0::2], postings64.view("<f4")[1::2]
+
+
+def empty_postings(n: int = 0) -> np.ndarray:
+    return np.zeros(n, "<i8")
+
+
+def pack_postings(entries: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(P,) postings (as int64) from (P,) entry ids and (P,) weights (rounded to float32)."""
+    out = np.empty((entries.shape[0], 2), "<i4")
+    out[:, 0] = entries
+    out.view("<f4")[:, 1] = weights
+    return out.view("<i8").reshape(-1)
+
+
+@dataclass(eq=False)
+class Segment:
+    """Postings of entries ``lo .. hi - 1``, sorted by word (entry ids ascending within a word).
+
+    Attributes:
+        lo, hi: the entry ids covered.
+        postings: (P,) postings as int64 (:func:`split` gives entry ids and weights).
+        words: (P,) int32 sorted word of every posting (small segments), or None.
+        indptr: (W + 1,) int64 offsets of every word's run (large segments), or None.
+        sessions: (hi - lo,) int32 session id of every covered entry.
+        name: file name in the index directory when the segment is persisted, else None.
+        crc: CRC-32 of the file body (persisted segments).
+    """
+
+    lo: int
+    hi: int
+    postings: np.ndarray
+    words: np.ndarray | None
+    indptr: np.ndarray | None
+    sessions: np.ndarray
+    name: str | None = None
+    crc: int = 0
+    path: Path | None = None
+
+    @property
+    def size(self) -> int:
+        return int(self.postings.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        table = self.words if self.words is not None else self.indptr
+        return int(self.postings.nbytes + (0 if table is None else table.nbytes) + self.sessions.nbytes)
+
+    def runs(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) int64 start and end offsets of the runs of the sorted query words."""
+        if self.indptr is not None:
+            return self.indptr[words].astype(np.int64), self.indptr[words + 1].astype(np.int64)
+        assert self.words is not None
+        return (np.searchsorted(self.words, words, "left").astype(np.int64),
+                np.searchsorted(self.words, words, "right").astype(np.int64))
+
+    def gather(self, words: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Postings of the query words, and the query weight of each, in word order.
+
+        Args:
+            words: (M,) int32 sorted unique query words.
+            values: (M,) float64 their query weights.
+
+        Returns:
+            (K,) postings as int64 (see :func:`split`) and (K,) float64 query weights, or
+            None when no word is shared.
+        """
+        lo, hi = self.runs(words)
+        counts = hi - lo
+        nz = np.flatnonzero(counts)
+        if not nz.size:
+            return None
+        counts = counts[nz]
+        lo = lo[nz]
+        total = int(counts.sum())
+        p64 = self.postings
+        if nz.size * 32 < total:
+            # long runs: copy each run whole
+            got = np.concatenate([p64[a:b] for a, b in zip(lo.tolist(), (lo + counts).tolist(), strict=True)])
+        else:
+            # many short runs: one vectorised gather of every posting of every run
+            starts = np.cumsum(counts) - counts
+            got = p64[np.repeat(lo - starts, counts) + np.arange(total)]
+        return got, np.repeat(values[nz], counts)
+
+    def word_range(self, w0: int, w1: int) -> tuple[int, int]:
+        """Offsets of the postings of words ``w0 .. w1 - 1``."""
+        if self.indptr is not None:
+            return int(self.indptr[w0]), int(self.indptr[w1])
+        assert self.words is not None
+        return (int(np.searchsorted(self.words, w0, "left")), int(np.searchsorted(self.words, w1, "left")))
+
+    def word_at(self, positions: np.ndarray) -> np.ndarray:
+        """Word of the postings at the given offsets."""
+        if self.indptr is not None:
+            return np.searchsorted(self.indptr, positions, "right") - 1
+        assert self.words is not None
+        return self.words[positions].astype(np.int64)
+
+    def read(self, a: int, b: int, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Words and postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), copied.
+
+        A persisted segment is read with ``pread``, not through its mapping, so merging does
+        not make the index resident in memory.
+        """
+        if self.path is not None and b > a:
+            post = _pread(self.path, HEADER_SIZE + 8 * a, b - a)
+        else:
+            post = np.array(self.postings[a:b])
+        if self.indptr is not None:
+            words = np.repeat(np.arange(w0, w1, dtype=np.int32), np.diff(self.indptr[w0 : w1 + 1]))
+        else:
+            assert self.words is not None
+            words = np.array(self.words[a:b])
+        return words, post
+
+
+def _pread(path: Path, offset: int, count: int) -> np.ndarray:
+    out = np.empty(count, "<i8")
+    view = out.data.cast("B")
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        done = 0
+        while done < out.nbytes:
+            n = os.preadv(fd, [view[done:]], offset + done)
+            if n <= 0:
+                raise DatabaseError(f"{path}: index file shorter than its header says")
+            done += n
+    finally:
+        os.close(fd)
+    return out
+
+
+def sort_block(
+    words: np.ndarray, postings: np.ndarray, lo: int, hi: int, sessions: np.ndarray, n_words: int
+) -> Segment:
+    """An in-memory segment from unsorted postings (the latest additions)."""
+    order = word_order(words, n_words)
+    sw = np.ascontiguousarray(words[order], np.int32)
+    sp = postings[order]
+    if sp.shape[0] >= csr_threshold(n_words):
+        return Segment(lo, hi, sp, None, _indptr(sw, n_words), sessions)
+    return Segment(lo, hi, sp, sw, None, sessions)
+
+
+def word_order(words: np.ndarray, n_words: int) -> np.ndarray:
+    """Stable order of (P,) word ids: a radix sort on 16-bit halves (NumPy sorts 16-bit keys
+    by counting), faster than a comparison sort on the many short runs of a tail."""
+    if n_words <= 1 << 16:
+        return np.argsort(words.astype(np.uint16), kind="stable")
+    first = np.argsort((words & 0xFFFF).astype(np.uint16), kind="stable")
+    return first[np.argsort((words[first] >> 16).astype(np.uint16), kind="stable")]
+
+
+def _indptr(words: np.ndarray, n_words: int) -> np.ndarray:
+    indptr = np.zeros(n_words + 1, np.int64)
+    np.cumsum(np.bincount(words, minlength=n_words), out=indptr[1:])
+    return indptr
+
+
+# ---------------------------------------------------------------------------- sinks
+class Sink(Protocol):
+    """Where a merge writes its output, chunk by chunk in word order."""
+
+    def append(self, words: np.ndarray, postings: np.ndarray) -> None: ...
+
+    def finish(self, sessions: np.ndarray) -> Segment: ...
+
+    def abort(self) -> None: ...
+
+
+class MemorySink:
+    """Builds an in-memory segment."""
+
+    def __init__(self, lo: int, hi: int, csr: bool, n_words: int, capacity: int) -> None:
+        self.lo, self.hi, self.csr, self.n_words = lo, hi, csr, n_words
+        self.postings = np.empty(capacity, "<i8")
+        self.words: list[np.ndarray] = []
+        self.counts = np.zeros(n_words, np.int64) if csr else None
+        self.size = 0
+
+    def append(self, words: np.ndarray, postings: np.ndarray) -> None:
+        n = postings.shape[0]
+        self.postings[self.size : self.size + n] = postings
+        self.size += n
+        if self.counts is not None:
+            if n:
+                w0 = int(words[0])
+                c = np.bincount(words - w0)
+                self.counts[w0 : w0 + c.size] += c
+        else:
+            self.words.append(words.astype(np.int32, copy=False))
+
+    def finish(self, sessions: np.ndarray) -> Segment:
+        post = self.postings[: self.size]
+        if self.size < self.postings.shape[0] // 2:
+            post = post.copy()
+        if self.counts is not None:
+            indptr = np.zeros(self.n_words + 1, np.int64)
+            np.cumsum(self.counts, out=indptr[1:])
+            return Segment(self.lo, self.hi, post, None, indptr, sessions)
+        words = np.concatenate(self.words) if self.words else np.zeros(0, np.int32)
+        return Segment(self.lo, self.hi, post, words, None, sessions)
+
+    def abort(self) -> None:
+        pass
+
+
+def header_bytes(form: int, uuid: bytes, n_words: int, lo: int, hi: int, n_postings: int, crc: int) -> bytes:
+    fields = _HEADER.pack(SEGMENT_MAGIC, SEGMENT_VERSION, form, uuid, n_words, lo, hi, n_postings, crc)
+    head = fields + struct.pack("<I", zlib.crc32(fields))
+    return head + bytes(HEADER_SIZE - len(head))
+
+
+def expected_size(form: int, n_words: int, lo: int, hi: int, n_postings: int) -> int:
+    table = 8 * (n_words + 1) if form == FORM_CSR else 4 * n_postings
+    return HEADER_SIZE + 8 * n_postings + table + 4 * (hi - lo)
+
+
+class FileSink:
+    """Writes a segment file in chunks (postings streamed, tables at the end, header last)."""
+
+    def __init__(
+        self, path: Path, uuid: bytes, lo: int, hi: int, csr: bool, n_words: int, fsync: bool,
+        on_close: Callable[[Path], None] | None = None,
+    ) -> None:
+        self.path, self.uuid, self.lo, self.hi, self.csr = path, uuid, lo, hi, csr
+        self.n_words, self.fsync = n_words, fsync
+        self.f = open(path, "wb")  # noqa: SIM115 - closed in finish/abort
+        self.f.write(bytes(HEADER_SIZE))
+        self.crc = 0
+        self.size = 0
+        self.words: list[np.ndarray] = []
+        self.counts = np.zeros(n_words, np.int64) if csr else None
+        self._table: np.ndarray | None = None  # tables and sessions as bytes, once built
+        self._written = 0
+
+    def _write(self, data: np.ndarray) -> None:
+        buf = np.ascontiguousarray(data).data.cast("B")
+        self.crc = zlib.crc32(buf, self.crc)
+        self.f.write(buf)
+
+    def append(self, words: np.ndarray, postings: np.ndarray) -> None:
+        self._write(postings)
+        self.size += postings.shape[0]
+        if self.counts is not None:
+            if postings.shape[0]:
+                w0 = int(words[0])
+                c = np.bincount(words - w0)
+                self.counts[w0 : w0 + c.size] += c
+        else:
+            self.words.append(words.astype(np.int32, copy=False))
+
+    def finish(self, sessions: np.ndarray) -> Segment:
+        while True:
+            done = self.finish_step(sessions)
+            if done is not None:
+                return done
+
+    def finish_step(self, sessions: np.ndarray, budget: int = 1 << 20) -> Segment | None:
+        """Write the tables a slice of ``budget`` bytes at a time (a 10^6-word table is 8 MB);
+        returns the segment once the file is complete, else None."""
+        if self._table is None:
+            if self.counts is not None:
+                table = np.zeros(self.n_words + 1, "<i8")
+                np.cumsum(self.counts, out=table[1:])
+            else:
+                table = np.concatenate(self.words).astype("<i4") if self.words else np.zeros(0, "<i4")
+            self._table = np.concatenate([table.view(np.uint8), np.asarray(sessions, "<i4").view(np.uint8)])
+            return None
+        if self._written < self._table.shape[0]:
+            self._write(self._table[self._written : self._written + budget])
+            self._written += budget
+            return None
+        form = FORM_CSR if self.csr else FORM_WORDS
+        self.f.seek(0)
+        self.f.write(header_bytes(form, self.uuid, self.n_words, self.lo, self.hi, self.size, self.crc))
+        self.f.flush()
+        if self.fsync:
+            os.fsync(self.f.fileno())
+        self.f.close()
+        return map_segment(self.path, self.uuid, self.n_words, trusted=True)
+
+    def abort(self) -> None:
+        try:
+            self.f.close()
+        finally:
+            self.path.unlink(missing_ok=True)
+
+
+# ---------------------------------------------------------------------------- files
+def read_header(path: Path, uuid: bytes, n_words: int) -> tuple[int, int, int, int, int]:
+    """Check a segment file's header against the database and the file's length.
+
+    Returns:
+        form, lo, hi, postings, body CRC.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEADER_SIZE)
+            size = os.fstat(f.fileno()).st_size
+    except OSError as exc:
+        raise DatabaseError(f"{path}: cannot read index file ({exc.strerror or exc})") from exc
+    if len(head) < HEADER_SIZE or head[:4] != SEGMENT_MAGIC:
+        raise DatabaseError(f"{path}: not an index segment file (bad magic or shorter than its header)")
+    fields = head[: _HEADER.size]
+    (crc_h,) = struct.unpack_from("<I", head, _HEADER.size)
+    if zlib.crc32(fields) != crc_h:
+        raise DatabaseError(f"{path}: index file header is corrupt (checksum mismatch)")
+    _, version, form, file_uuid, words, lo, hi, n_post, crc = _HEADER.unpack(fields)
+    if version != SEGMENT_VERSION or form not in (FORM_WORDS, FORM_CSR):
+        raise DatabaseError(f"{path}: index file version {version} form {form}, expected "
+                            f"version {SEGMENT_VERSION}")
+    if file_uuid != uuid:
+        raise DatabaseError(f"{path}: index file belongs to another database")
+    if words != n_words:
+        raise DatabaseError(f"{path}: index file made for {words} words, the vocabulary has {n_words}")
+    if lo > hi or hi >= 2**31:
+        raise DatabaseError(f"{path}: index file covers entries {lo}..{hi}, not a valid range")
+    want = expected_size(form, words, lo, hi, n_post)
+    if want != size:
+        raise DatabaseError(f"{path}: index file is {size} bytes, its header says {want} "
+                            "(truncated or corrupt)")
+    return form, lo, hi, n_post, crc
+
+
+def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) -> Segment:
+    """Memory-map a segment file after checking its header, length and tables (O(words),
+    not O(postings): the body's checksum is checked by :func:`verify_segment`); ``trusted``
+    skips the tables' check (a file this process has just written)."""
+    form, lo, hi, n_post, crc = read_header(path, uuid, n_words)
+    with open(path, "rb") as f:
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    off = HEADER_SIZE
+    postings = np.frombuffer(mm, "<i8", n_post, off)
+    off += 8 * n_post
+    words = indptr = None
+    if form == FORM_CSR:
+        indptr = np.frombuffer(mm, "<i8", n_words + 1, off)
+        off += 8 * (n_words + 1)
+        if not trusted and (indptr[0] != 0 or indptr[-1] != n_post or bool(np.any(indptr[1:] < indptr[:-1]))):
+            raise DatabaseError(f"{path}: index file's word table is corrupt")
+    else:
+        words = np.frombuffer(mm, "<i4", n_post, off)
+        off += 4 * n_post
+        if not trusted and n_post and (words[0] < 0 or words[-1] >= n_words
+                                       or bool(np.any(words[1:] < words[:-1]))):
+            raise DatabaseError(f"{path}: index file's words are corrupt")
+    sessions = np.frombuffer(mm, "<i4", hi - lo, off)
+    return Segment(lo, hi, postings, words, indptr, sessions, name=path.name, crc=crc, path=path)
+
+
+def verify_segment(seg: Segment, n_entries: int, block: int = 1 << 24) -> str | None:
+    """Check a persisted segment's body checksum and entry ids; returns the problem or None."""
+    if seg.path is None:
+        return None
+    crc = 0
+    try:
+        with open(seg.path, "rb") as f:
+            f.seek(HEADER_SIZE)
+            while chunk := f.read(block):
+                crc = zlib.crc32(chunk, crc)
+    except OSError as exc:
+        return f"{seg.path}: cannot read index file ({exc.strerror or exc})"
+    if crc != seg.crc:
+        return f"{seg.path}: index file body is corrupt (checksum mismatch)"
+    ent = split(seg.postings)[0]
+    if ent.size and (int(ent.min()) < seg.lo or int(ent.max()) >= min(seg.hi, n_entries)):
+        return f"{seg.path}: index file holds entry ids outside {seg.lo}..{seg.hi - 1}"
+    return None
+
+
+# ---------------------------------------------------------------------------- merging
+class MergeJob:
+    """Merge adjacent segments (oldest first) into one, a bounded chunk of words per step.
+
+    Args:
+        inputs: adjacent segments, ordered by entry ids.
+        sink: where the merged segment goes.
+        n_words: vocabulary size.
+        chunk: postings per step (about).
+        alive: (n,) bool, False for removed entries whose postings are dropped, or None.
+        shift: added to every entry id (copying segments into another map).
+        session_shift: added to every session id.
+    """
+
+    def __init__(
+        self, inputs: Sequence[Segment], sink_factory: Callable[[int, int, bool, int], Sink],
+        n_words: int, chunk: int = 1 << 18, alive: np.ndarray | None = None,
+        shift: int = 0, session_shift: int = 0,
+    ) -> None:
+        for a, b in zip(inputs, inputs[1:], strict=False):
+            if a.hi != b.lo:
+                raise ValueError("merge inputs must be adjacent")
+        self.inputs = list(inputs)
+        self.n_words = n_words
+        self.alive = alive
+        self.shift, self.session_shift = int(shift), int(session_shift)
+        self.lo, self.hi = self.inputs[0].lo, self.inputs[-1].hi
+        self.total = sum(s.size for s in self.inputs)
+        self.csr = self.total >= csr_threshold(n_words)
+        self.sink_factory = sink_factory
+        self.sink: Sink | None = None
+        self.bounds = self._bounds(chunk)
+        self.next = 0
+        self._sessions: np.ndarray | None = None
+        self.result: Segment | None = None
+
+    def _bounds(self, chunk: int) -> list[int]:
+        n_chunks = -(-self.total // max(chunk, 1))
+        if n_chunks <= 1:
+            return [0, self.n_words]
+        big = max(self.inputs, key=lambda s: s.size)
+        pos = (np.arange(1, n_chunks) * big.size) // n_chunks
+        inner = np.unique(big.word_at(pos.astype(np.int64)))
+        inner = inner[(inner > 0) & (inner < self.n_words)]
+        return [0, *inner.tolist(), self.n_words]
+
+    @property
+    def remaining(self) -> int:
+        """About how many postings are still to merge."""
+        return self.total * (len(self.bounds) - 1 - self.next) // max(len(self.bounds) - 1, 1)
+
+    def step(self) -> bool:
+        """Merge the next chunk of words; returns True once the merged segment is ready."""
+        if self.sink is None:
+            self.sink = self.sink_factory(self.lo + self.shift, self.hi + self.shift, self.csr, self.total)
+        if self.next < len(self.bounds) - 1:
+            w0, w1 = self.bounds[self.next], self.bounds[self.next + 1]
+            self.next += 1
+            self.sink.append(*self._chunk(w0, w1))
+            return False
+        if self._sessions is None:
+            sessions = np.concatenate([np.asarray(s.sessions, np.int32) for s in self.inputs])
+            if self.session_shift:
+                sessions = (sessions.astype(np.int64) + self.session_shift).astype(np.int32)
+            self._sessions = sessions
+        finish_step = getattr(self.sink, "finish_step", None)
+        if finish_step is None:
+            self.result = self.sink.finish(self._sessions)
+        else:
+            self.result = finish_step(self._sessions)
+        return self.result is not None
+
+    def _chunk(self, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
+        words_l, post_l = [], []
+        for seg in self.inputs:
+            a, b = seg.word_range(w0, w1)
+            if b > a:
+                w, p = seg.read(a, b, w0, w1)
+                ent = split(p)[0]
+                if int(ent.min()) < seg.lo or int(ent.max()) >= seg.hi:
+                    name = seg.path if seg.path is not None else "an index segment"
+                    raise DatabaseError(f"{name}: holds entry ids outside {seg.lo}..{seg.hi - 1} (corrupt)")
+                words_l.append(w)
+                post_l.append(p)
+        if not post_l:
+            return np.zeros(0, np.int32), empty_postings()
+        words = np.concatenate(words_l) if len(words_l) > 1 else words_l[0]
+        post = np.concatenate(post_l) if len(post_l) > 1 else post_l[0]
+        if len(post_l) > 1:
+            # the inputs are sorted runs, oldest first: a stable sort merges them and keeps
+            # entry ids ascending within each word
+            order = np.argsort(words, kind="stable")
+            words, post = words[order], post[order]
+        if self.alive is not None:
+            keep = self.alive[split(post)[0]]
+            if not keep.all():
+                words, post = words[keep], post[keep]
+        if self.shift:
+            ent, weights = split(post)
+            post = pack_postings(ent.astype(np.int64) + self.shift, weights)
+        return words, post
+
+    def abort(self) -> None:
+        if self.sink is not None and self.result is None:
+            self.sink.abort()

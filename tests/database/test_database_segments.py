@@ -1,0 +1,147 @@
+"""Segment files: round trip, and every damaged or hostile file refused with one line naming
+it, before anything is mapped or allocated."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import stablecues.database.segments as segments
+from stablecues.database.segments import (
+    HEADER_SIZE,
+    FileSink,
+    MergeJob,
+    Segment,
+    header_bytes,
+    map_segment,
+    pack_postings,
+    sort_block,
+    split,
+    verify_segment,
+)
+from stablecues.errors import DatabaseError
+
+UUID = bytes(range(16))
+N_WORDS = 300
+
+
+def random_segment(n_entries: int = 50, seed: int = 0, lo: int = 0) -> Segment:
+    rng = np.random.default_rng(seed)
+    words, post = [], []
+    for e in range(lo, lo + n_entries):
+        w = np.unique(rng.integers(0, N_WORDS, 30)).astype(np.int32)
+        words.append(w)
+        post.append(pack_postings(np.full(w.size, e, np.int32), rng.random(w.size)))
+    sessions = rng.integers(0, 5, n_entries).astype(np.int32)
+    return sort_block(np.concatenate(words), np.concatenate(post), lo, lo + n_entries, sessions, N_WORDS)
+
+
+def write(seg: Segment, path: Path, csr: bool) -> Segment:
+    job = MergeJob([seg], lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, csr, N_WORDS, fsync=False),
+                   N_WORDS, chunk=200)
+    job.csr = csr
+    while not job.step():
+        pass
+    assert job.result is not None
+    return job.result
+
+
+@pytest.mark.parametrize("csr", [False, True])
+def test_round_trip_and_queries(csr: bool, tmp_path: Path) -> None:
+    seg = random_segment()
+    f = write(seg, tmp_path / "seg-00000001.sci", csr)
+    assert (f.indptr is not None) == csr and f.name == "seg-00000001.sci"
+    assert np.array_equal(f.postings, seg.postings) and np.array_equal(f.sessions, seg.sessions)
+    q = np.array([3, 17, 150, 299], np.int32)
+    a, b = seg.gather(q, np.ones(4)), f.gather(q, np.ones(4))
+    assert a is not None and b is not None and np.array_equal(a[0], b[0])
+    assert verify_segment(f, 50) is None
+    again = map_segment(f.path, UUID, N_WORDS)  # type: ignore[arg-type]
+    assert np.array_equal(again.postings, seg.postings)
+
+
+def corrupt(path: Path, offset: int, data: bytes) -> None:
+    raw = bytearray(path.read_bytes())
+    raw[offset : offset + len(data)] = data
+    path.write_bytes(bytes(raw))
+
+
+def rewrite_header(path: Path, **fields: int) -> None:
+    """A header with valid checksums but hostile fields."""
+    raw = path.read_bytes()
+    names = ["magic", "version", "form", "uuid", "n_words", "lo", "hi", "postings", "crc"]
+    values = dict(zip(names, struct.unpack_from("<4sHBx16sQQQQI", raw), strict=True))
+    values.update(fields)
+    packed = struct.pack("<4sHBx16sQQQQI", *(values[k] for k in names))
+    head = packed + struct.pack("<I", zlib.crc32(packed))
+    path.write_bytes(head + raw[len(head) :])
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (lambda p: p.write_bytes(b""), "not an index segment file"),
+        (lambda p: corrupt(p, 0, b"JUNK"), "not an index segment file"),
+        (lambda p: corrupt(p, 30, b"\xff"), "header is corrupt"),
+        (lambda p: p.write_bytes(p.read_bytes()[:-7]), "truncated or corrupt"),
+        (lambda p: p.write_bytes(p.read_bytes() + b"\0" * 8), "truncated or corrupt"),
+        (lambda p: rewrite_header(p, postings=10**15), "truncated or corrupt"),  # claims 8 PB
+        (lambda p: rewrite_header(p, n_words=10**12), "made for"),
+        (lambda p: rewrite_header(p, hi=2**40), "not a valid range"),
+        (lambda p: rewrite_header(p, lo=60, hi=50), "not a valid range"),
+        (lambda p: rewrite_header(p, uuid=bytes(16)), "another database"),
+        (lambda p: rewrite_header(p, version=9), "version 9"),
+    ],
+)
+def test_damaged_or_hostile_files_are_refused(damage, message: str, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "seg-00000001.sci"
+    write(random_segment(), path, csr=True)
+    damage(path)
+    with pytest.raises(DatabaseError, match=message) as err:
+        map_segment(path, UUID, N_WORDS)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("csr", [False, True])
+def test_corrupt_tables_are_refused_and_bodies_found_by_the_checksum(csr: bool, tmp_path: Path) -> None:
+    path = tmp_path / "seg-00000001.sci"
+    seg = write(random_segment(), path, csr)
+    table_at = HEADER_SIZE + 8 * seg.size
+    corrupt(path, table_at + 8, struct.pack("<q", -5) if csr else struct.pack("<i", 10**6))
+    with pytest.raises(DatabaseError, match="corrupt"):
+        map_segment(path, UUID, N_WORDS)
+    path2 = tmp_path / "seg-00000002.sci"
+    write(random_segment(), path2, csr)
+    corrupt(path2, HEADER_SIZE + 8 * 10 + 4, b"\x7f\xc0\x00\x00")  # a NaN weight in the body
+    mapped = map_segment(path2, UUID, N_WORDS)  # the header and tables are fine
+    problem = verify_segment(mapped, 50)
+    assert problem is not None and "checksum" in problem and str(path2) in problem
+
+
+def test_merge_of_many_inputs_keeps_entry_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(segments, "CSR_MIN", 100)
+    parts = [random_segment(20, seed=s, lo=20 * s) for s in range(4)]
+    job = MergeJob(parts, lambda lo, hi, c, t: FileSink(tmp_path / "seg-00000009.sci", UUID, lo, hi, c,
+                                                        N_WORDS, fsync=False), N_WORDS, chunk=150)
+    while not job.step():
+        pass
+    out = job.result
+    assert out is not None and out.indptr is not None and (out.lo, out.hi) == (0, 80)
+    ent, _ = split(out.postings)
+    words = np.repeat(np.arange(N_WORDS), np.diff(out.indptr))
+    order = np.lexsort((ent, words))
+    assert np.array_equal(order, np.arange(order.size))  # sorted by word, then entry
+    assert sorted(zip(words.tolist(), ent.tolist(), strict=True)) == sorted(
+        (int(w), int(e)) for p in parts for w, e in zip(p.words.tolist(), split(p.postings)[0].tolist(),  # type: ignore[union-attr]
+                                                        strict=True))
+
+
+def test_header_checksum_covers_every_field() -> None:
+    head = header_bytes(1, UUID, 10, 0, 5, 7, 123)
+    fields = head[: struct.calcsize("<4sHBx16sQQQQI")]
+    (crc,) = struct.unpack_from("<I", head, len(fields))
+    assert crc == zlib.crc32(fields) and len(head) == HEADER_SIZE
