@@ -30,6 +30,10 @@ OPTIONAL = {
     "torch": 'pip install "stablecues[train]"',
     "onnx": 'pip install "stablecues[train]"',
     "numba": "pip install numba",
+    "dask": 'pip install "stablecues[dask]"',
+    "distributed": 'pip install "stablecues[dask]"',
+    "rosbags": 'pip install "stablecues[rosbag]"',
+    "rerun": 'pip install "stablecues[rerun]"',
 }
 
 # command name -> module of this package that implements it
@@ -44,6 +48,8 @@ COMMANDS: dict[str, str] = {
     "report": "report",
     "synth": "synth",
     "mav": "mav",
+    "info": "info",
+    "sweep": "sweep",
 }
 
 
