@@ -112,3 +112,34 @@ def test_prior_correction_is_a_classifier_bias() -> None:
         after = net(x)
     shift = torch.from_numpy((0.5 * log_w).astype(np.float32))[None, :, None, None]
     torch.testing.assert_close(after, before - shift, atol=1e-5, rtol=0)
+
+
+class _Hostile:
+    """A pickled object whose loading would run a shell command."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        import os
+
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_hostile_checkpoint_is_refused_without_running_code(tmp_path: Path) -> None:
+    torch = pytest.importorskip("torch", reason="torch not installed (the train extra)")
+    from stablecues.errors import ModelError
+    from stablecues.semantics.train import load_checkpoint, read_checkpoint
+
+    marker = tmp_path / "ran"
+    path = tmp_path / "evil.pt"
+    torch.save({"config": {"widths": [4, 8, 8, 16]}, "model": {}, "x": _Hostile(marker)}, path)
+    for reader in (read_checkpoint, load_checkpoint):
+        with pytest.raises(ModelError, match=r"evil\.pt: not a stablecues training checkpoint"):
+            reader(path)
+    assert not marker.exists()
+    (tmp_path / "cut.pt").write_bytes(path.read_bytes()[:100])
+    with pytest.raises(ModelError, match=r"cut\.pt: not a stablecues training checkpoint"):
+        read_checkpoint(tmp_path / "cut.pt")
+    with pytest.raises(ModelError, match="not found"):
+        read_checkpoint(tmp_path / "none.pt")

@@ -118,14 +118,12 @@ def release(
     Returns:
         The metadata written.
     """
-    import torch
-
     from .export import export_onnx, write_metadata
-    from .train import load_checkpoint
+    from .train import load_checkpoint, read_checkpoint
 
     checkpoint = Path(checkpoint)
     net = load_checkpoint(checkpoint)
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(checkpoint)
     size = ckpt["config"]["input_size"]
     input_size = (int(size[0]), int(size[1]))
     cfg = ckpt["config"]

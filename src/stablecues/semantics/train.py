@@ -112,8 +112,7 @@ def _resume(last: Path, net: Any, opt: Any, config: TrainConfig) -> tuple[int, f
     Raises:
         ConfigError: the checkpoint's widths differ from the config's.
     """
-    torch = _require_torch()
-    ckpt = torch.load(last, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(last)
     if tuple(ckpt["config"]["widths"]) != tuple(config.widths):
         raise ConfigError(f"{last}: checkpoint widths {ckpt['config']['widths']}, asked {config.widths}")
     net.load_state_dict(ckpt["model"])
@@ -157,6 +156,30 @@ def _train_epoch(
         opt.step()
         losses.append(float(loss.item()))
     return losses
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The dictionary of a checkpoint written by :func:`train`, read without unpickling code.
+
+    ``torch.load(weights_only=True)`` admits tensors, containers and plain values only, so a
+    hostile ``.pt`` file cannot run anything; anything else is a one-line :class:`ModelError`.
+    """
+    torch = _require_torch()
+    from ..errors import ModelError
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError ...
+        first = " ".join(str(exc).split())[:200]
+        raise ModelError(f"{path}: not a stablecues training checkpoint "
+                         f"({type(exc).__name__}: {first})") from exc
+    if not isinstance(ckpt, dict) or not {"config", "model"} <= set(ckpt):
+        raise ModelError(f"{path}: not a stablecues training checkpoint "
+                         "(expected a dict with config and model)")
+    return ckpt
 
 
 def _save_atomic(checkpoint: dict[str, Any], path: Path) -> None:
@@ -262,14 +285,9 @@ def train(config: TrainConfig, *, resume: bool = False) -> dict[str, Any]:
 
 def load_checkpoint(path: str | Path) -> Any:
     """The network of a checkpoint (``best.pt`` or ``last.pt``), in evaluation mode."""
-    torch = _require_torch()
-    from ..errors import ModelError
     from .model import BayesLiteSeg
 
-    path = Path(path)
-    if not path.is_file():
-        raise ModelError(f"{path}: checkpoint not found")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path)
     net = BayesLiteSeg(tuple(ckpt["config"]["widths"]))
     net.load_state_dict(ckpt["model"])
     net.eval()
