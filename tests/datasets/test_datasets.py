@@ -65,4 +65,4 @@ def test_open_dataset_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="dataset folder not found"):
         detect_format(tmp_path / "absent")
     assert open_dataset(tmp_path, format="folder", grey=True)[0].image.ndim == 2
-    assert set(FORMATS) == {"folder", "tum", "kitti", "euroc", "fabmap", "vprbench"}
+    assert set(FORMATS) == {"folder", "tum", "kitti", "euroc", "fabmap", "vprbench", "rosbag"}

@@ -9,6 +9,7 @@ kitti      KITTI odometry sequence (image_0/1 or image_2/3, calib.txt, times.txt
 euroc      EuRoC MAV, ASL layout (mav0/cam0, cam1, sensor.yaml, ground truth)
 fabmap     FAB-MAP New College / City Centre (left/right images interleaved)
 vprbench   two-pass VPR-Bench set (ref/, query/, ground_truth_new.npy) as one sequence
+rosbag     ROS 1 .bag, ROS 2 bag folder (metadata.yaml + .db3 / .mcap) or a bare .db3 / .mcap
 ========== =====================================================================
 """
 
@@ -28,6 +29,7 @@ from .euroc import open_euroc
 from .fabmap import FabmapDataset, open_fabmap
 from .folder import open_folder
 from .kitti import open_kitti
+from .rosbag import RosbagDataset, is_bag, open_rosbag
 from .tum import open_tum
 from .vprbench import open_vprbench
 
@@ -37,6 +39,7 @@ __all__ = [
     "FabmapDataset",
     "Frame",
     "FrameRecord",
+    "RosbagDataset",
     "SequenceDataset",
     "detect_format",
     "natural_key",
@@ -45,6 +48,7 @@ __all__ = [
     "open_fabmap",
     "open_folder",
     "open_kitti",
+    "open_rosbag",
     "open_tum",
     "open_vprbench",
 ]
@@ -56,6 +60,7 @@ FORMATS: dict[str, Callable[..., SequenceDataset]] = {
     "euroc": open_euroc,
     "fabmap": open_fabmap,
     "vprbench": open_vprbench,
+    "rosbag": open_rosbag,
 }
 
 _TIMESTAMP_IMAGE = re.compile(r"^\d{6,}\.\d+\.(png|jpg)$", re.IGNORECASE)
@@ -64,7 +69,8 @@ _TIMESTAMP_IMAGE = re.compile(r"^\d{6,}\.\d+\.(png|jpg)$", re.IGNORECASE)
 def detect_format(path: str | Path) -> str:
     """Guess a dataset folder's format from its layout.
 
-    Rules, first match wins: ``mav0/cam0`` -> euroc; ``rgb.txt`` -> tum; ``image_0/`` or
+    Rules, first match wins: a ROS bag (a ``.bag``, ``.db3`` or ``.mcap`` file, or a folder with
+    a ROS 2 ``metadata.yaml``) -> rosbag; ``mav0/cam0`` -> euroc; ``rgb.txt`` -> tum; ``image_0/`` or
     ``image_2/`` -> kitti; ``ref/`` and ``query/`` -> vprbench; ``Images/`` or a
     ``*GroundTruth*.mat`` -> fabmap; images named by timestamps beside a ``*groundtruth*.txt``
     -> tum; anything else -> folder.
@@ -73,6 +79,8 @@ def detect_format(path: str | Path) -> str:
         DatasetError: the path is not a folder.
     """
     root = Path(path)
+    if is_bag(root):
+        return "rosbag"
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder not found")
     if (root / "mav0" / "cam0").is_dir() or (root.name == "mav0" and (root / "cam0").is_dir()):
@@ -97,9 +105,9 @@ def open_dataset(path: str | Path, format: str = "auto", **options: Any) -> Sequ
     """Open a dataset folder.
 
     Args:
-        path: the dataset folder.
+        path: the dataset folder (or a ROS bag file).
         format: "auto" (see :func:`detect_format`), "folder", "tum", "kitti", "euroc",
-            "fabmap" or "vprbench".
+            "fabmap", "vprbench" or "rosbag".
         **options: keyword options of that format's ``open_*`` function (e.g. ``grey=True``,
             ``view="right"`` for fabmap, ``groundtruth=...`` for tum / euroc).
 
