@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from ..features import ExtractorConfig
+    from ..vocabulary import Vocabulary
 
 
 def add_extractor_options(
@@ -43,3 +45,52 @@ def extractor_from_args(args: argparse.Namespace) -> ExtractorConfig:
                               "give the extractor's name to --features")
         name, n = DEFAULT_EXTRACTOR, int(name)
     return extractor_config(name) if n is None else extractor_config(name, n_features=n)
+
+
+def presets_epilog() -> str:
+    """The detector presets, one line each (``name  description``), for a parser's epilog
+    (use ``formatter_class=argparse.RawDescriptionHelpFormatter`` to keep the lines)."""
+    from ..detection import DEFAULT_PRESET, describe_preset, preset_names
+
+    names = preset_names()
+    width = max(len(n) for n in names)
+    lines = [f"  {n:<{width}}  {describe_preset(n)}" for n in names]
+    return f"presets (--preset NAME, default {DEFAULT_PRESET!r}):\n" + "\n".join(lines)
+
+
+def add_preset_option(parser: argparse.ArgumentParser) -> None:
+    """``--preset NAME``: one of the detector presets (list them with :func:`presets_epilog`)."""
+    from ..detection import DEFAULT_PRESET, preset_names
+
+    parser.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(), metavar="NAME",
+                        help=f"detector preset, one of those listed below (default {DEFAULT_PRESET})")
+
+
+def add_vocabulary_option(parser: argparse.ArgumentParser) -> None:
+    """``--vocab FILE``, read back by :func:`vocabulary_from_args`."""
+    from ..vocabulary import DEFAULT_VOCABULARY
+
+    parser.add_argument("--vocab", type=Path, metavar="FILE",
+                        help="vocabulary file: the own binary format (.scv, as `stablecues vocab train` "
+                             "writes) or DBoW2/ORB-SLAM text (e.g. ORBvoc.txt); its descriptors must be "
+                             f"the features' (default: the shipped {DEFAULT_VOCABULARY})")
+
+
+def vocabulary_from_args(args: argparse.Namespace) -> Vocabulary | None:
+    """The vocabulary ``--vocab`` names, or None for the shipped one.
+
+    Raises:
+        VocabularyError: a missing, truncated or corrupt file.
+    """
+    if args.vocab is None:
+        return None
+    from ..vocabulary import load_vocabulary
+
+    return load_vocabulary(args.vocab)
+
+
+def add_progress_option(parser: argparse.ArgumentParser) -> None:
+    """``--no-progress``."""
+    parser.add_argument("--no-progress", action="store_true",
+                        help="do not draw the progress bar (for logs, CI and pipes; the summary is "
+                             "still printed)")

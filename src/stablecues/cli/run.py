@@ -4,18 +4,36 @@ from __future__ import annotations
 
 import argparse
 import json
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from .options import (
+    add_preset_option,
+    add_progress_option,
+    add_vocabulary_option,
+    presets_epilog,
+    vocabulary_from_args,
+)
+
+if TYPE_CHECKING:
+    from ..detection import DetectorConfig
+    from ..detection.run import RunSummary
+    from ..viz import RerunLogger
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    from ..detection import preset_names
-
-    p = subparsers.add_parser("run", help="detect loops over a dataset and write a run directory")
+    p = subparsers.add_parser(
+        "run", help="detect loops over a dataset and write a run directory",
+        description="Run the loop detector over a dataset's frames in order and write a run directory "
+                    "(decisions.csv, similarity matrix, timings, match pictures) for `stablecues eval`.",
+        epilog=presets_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dataset", type=Path, help="dataset folder")
     p.add_argument("--format", default="auto",
                    help="auto | folder | tum | kitti | euroc | fabmap | vprbench (default auto)")
-    p.add_argument("--preset", default="default", choices=preset_names(), help="detector preset")
+    add_preset_option(p)
+    add_vocabulary_option(p)
     p.add_argument("--out", type=Path, required=True, help="run directory to write")
     p.add_argument("--gt", type=Path, help="loop ground truth file to record with the run")
     p.add_argument("--db", type=Path, help="database file (default: RUN_DIR/map.sqlite)")
@@ -28,7 +46,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a setting, e.g. query.alpha=0.2 or verification.min_agree=3 "
                         "(VALUE is JSON; repeatable)")
-    p.add_argument("--no-progress", action="store_true")
+    add_progress_option(p)
+    g = p.add_argument_group("watching it live (the rerun extra)")
+    g.add_argument("--rerun", type=Path, metavar="FILE.rrd",
+                   help="log each frame (image, kept keypoints, top scores, accepted loops with their "
+                        "matches, trajectory and loop edges when poses are known, stage times) to this "
+                        "Rerun recording (replaced if it exists); open it with `rerun FILE.rrd`")
+    g.add_argument("--rerun-spawn", action="store_true",
+                   help="also stream to a Rerun viewer started now (needs the viewer and a display)")
     return p
 
 
@@ -62,14 +87,29 @@ def run(args: argparse.Namespace) -> int:
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one")
     config = preset(args.preset, parse_overrides(args.set))
+    vocabulary = vocabulary_from_args(args)
     dataset = open_dataset(args.dataset, format=args.format)
     gt = args.gt if args.gt is not None else dataset.ground_truth_path()
     described = dataset.describe() if hasattr(dataset, "describe") else {}
     meta = {**described, "dataset": str(args.dataset), "format": getattr(dataset, "format", args.format),
             "ground_truth": None if gt is None else str(gt), "overrides": args.set}
-    summary = run_dataset(dataset, config, args.out, preset_name=args.preset, meta=meta,
-                          database=args.db, resume=args.resume, overwrite=args.overwrite,
-                          max_frames=args.max_frames, pictures=args.pictures, progress=not args.no_progress)
+    if vocabulary is not None:
+        meta.update(vocabulary=str(args.vocab), vocabulary_fingerprint=vocabulary.info().fingerprint)
+    with ExitStack() as stack:
+        observers: list[Any] = []
+        segmenter = None
+        if args.rerun is not None or args.rerun_spawn:
+            from ..viz import RerunLogger
+
+            logger = stack.enter_context(RerunLogger(
+                args.rerun, spawn=args.rerun_spawn, image_of=lambda i: dataset[i].image))
+            observers.append(logger)
+            segmenter = _watched_segmenter(config, logger)
+        summary = run_dataset(dataset, config, args.out, preset_name=args.preset, meta=meta,
+                              database=args.db, resume=args.resume, overwrite=args.overwrite,
+                              max_frames=args.max_frames, pictures=args.pictures,
+                              progress=not args.no_progress, segmenter=segmenter, vocabulary=vocabulary,
+                              observers=observers)
     statuses = ", ".join(f"{k} {v}" for k, v in sorted(summary.statuses.items()))
     if summary.already_complete:
         print(f"{summary.out_dir}: the run is already complete; nothing to resume")
@@ -80,5 +120,44 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary.frames} frames, {summary.loops} loops accepted, {speed}; {statuses}")
     if summary.mask_fallbacks:
         print(f"semantic masking fell back to all features on {summary.mask_fallbacks} frames")
+    hint = exclusion_hint(summary, config)
+    if hint:
+        print(hint)
     print(f"run written to {summary.out_dir}" + (f" (ground truth: {gt})" if gt else ""))
+    if args.rerun is not None:
+        print(f"Rerun recording written to {args.rerun} (open it with: rerun {args.rerun})")
     return 0
+
+
+def exclusion_hint(summary: RunSummary, config: DetectorConfig) -> str | None:
+    """Why no loop was found when the exclusion window left (almost) nothing to query, or None.
+
+    A frame is only compared with frames older than the window (``query.exclude_recent`` frames,
+    ``query.exclude_recent_s`` seconds): on a sequence not much longer than the window, no frame
+    or few have anything to query.
+    """
+    n, close = summary.frames, summary.statuses.get("close_matches_only", 0)
+    if n == 0 or summary.loops or 2 * close < n:
+        return None
+    q = config.query
+    window = f"query.exclude_recent = {q.exclude_recent} frames"
+    if q.exclude_recent_s is not None:
+        window += f", query.exclude_recent_s = {q.exclude_recent_s:g} s"
+    which = "none of the" if close == n else f"{close} of the"
+    return (f"hint: {which} {n} frames had an earlier frame outside the exclusion window ({window}) "
+            "to compare with; on a short sequence lower it, e.g. "
+            f"--set query.exclude_recent={max(1, n // 4)}")
+
+
+def _watched_segmenter(config: DetectorConfig, logger: RerunLogger) -> Any | None:
+    """The shipped segmentation network as the detector would run it, watched by ``logger`` so the
+    keypoints are coloured by the classes the detector saw; None when the run segments nothing
+    with the network."""
+    segments = (config.masking is not None and config.masking.mode != "none") or config.weighting is not None
+    if not segments or config.semantic_source != "network":
+        return None
+    from ..semantics.inference import SegmentationModel
+
+    model = SegmentationModel.load()
+    samples = config.segmentation_samples
+    return logger.watch_segmenter(lambda image: model.predict(image, samples))

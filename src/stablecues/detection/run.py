@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from tqdm import tqdm
@@ -21,9 +22,24 @@ from .config import DetectorConfig
 from .decision import LoopDecision
 from .detector import LoopDetector
 
+if TYPE_CHECKING:
+    from ..types import Frame
+    from ..vocabulary import Vocabulary
+
 log = logging.getLogger(__name__)
 
 STAGES = ("extract", "segment", "mask", "transform", "lift", "query", "verify", "add", "total")
+
+
+class FrameObserver(Protocol):
+    """Sees each frame as the run decides it (e.g. :class:`stablecues.viz.RerunLogger`).
+
+    ``observe`` is called after the frame's decision is written and the frame stored in the
+    detector's map (``detector.db.entry(decision.entry_id)`` holds its kept features), in frame
+    order, for the frames this call processes (a resumed run: those after the resume point).
+    """
+
+    def observe(self, frame: Frame, decision: LoopDecision, detector: LoopDetector) -> None: ...
 
 
 @dataclass
@@ -102,6 +118,8 @@ def run_dataset(
     pictures: int = 4,
     progress: bool = True,
     segmenter: Any | None = None,
+    vocabulary: Vocabulary | None = None,
+    observers: Sequence[FrameObserver] = (),
 ) -> RunSummary:
     """Run the loop detector over ``dataset`` and write a run directory.
 
@@ -124,6 +142,9 @@ def run_dataset(
         pictures: how many match pictures of accepted loops to save (evenly spread over the run).
         progress: show a progress bar.
         segmenter: replaces the shipped segmentation network (tests, other models).
+        vocabulary: the vocabulary (default: the shipped one); a resumed run's database
+            refuses another.
+        observers: told of each frame as it is decided (see :class:`FrameObserver`).
 
     Returns:
         a summary of the whole run.
@@ -155,13 +176,14 @@ def run_dataset(
     )
     if not resume and db_path.exists():
         _remove_database(db_path, named=False)
-    detector = LoopDetector(config, database=db_path, segmenter=segmenter)
+    detector = LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter)
     deferred = _DeferredCommit(detector.db)
     detector.db = deferred  # type: ignore[assignment]
     decisions: dict[int, LoopDecision] = {}
     try:
         start = writer.reconcile(len(detector))
-        _process(dataset, detector, writer, deferred, range(start, n), decisions, progress, preset_name)
+        _process(dataset, detector, writer, deferred, range(start, n), decisions, progress, preset_name,
+                 observers)
         saved = _match_pictures(dataset, detector, writer, decisions, pictures)
     finally:
         detector.close()
@@ -178,8 +200,9 @@ def _process(
     decisions: dict[int, LoopDecision],
     progress: bool,
     name: str,
+    observers: Sequence[FrameObserver] = (),
 ) -> None:
-    """Detect, journal, commit and write each frame of ``frames`` in order."""
+    """Detect, journal, commit and write each frame of ``frames`` in order, then tell the observers."""
     similarity = detector.config.similarity
     bar = tqdm(total=frames.stop, initial=frames.start, desc=f"run {name}", unit="frame",
                disable=not progress)
@@ -203,6 +226,8 @@ def _process(
             )
             if d.accepted:
                 decisions[d.frame_index] = d
+            for observer in observers:
+                observer.observe(frame, d, detector)
             bar.update(1)
     finally:
         bar.close()
