@@ -11,8 +11,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subparsers.add_parser(
         "eval",
         help="evaluate a run directory against loop ground truth",
-        description="Recall at 100 %% precision (swept over every distinct score), the PR curve, its area, "
-        "the counts and the per-stage timing of a run. Writes eval_<protocol>.json into the run directory.",
+        description="Recall at 100 % precision (swept over every distinct score), the PR curve, its area, "
+        "the counts, the loss funnel (for each positive query, the stage where its true loop was lost) "
+        "and the per-stage timing of a run. Writes eval_<protocol>.json into the run directory.",
     )
     p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="directory written by 'stablecues run'")
     p.add_argument(
@@ -96,7 +97,8 @@ def format_summary(doc: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError, DatasetError
-    from ..evaluation.evaluate import eval_file_name, evaluate_run, save_evaluation
+    from ..evaluation.evaluate import eval_file_name, evaluate_run, evaluation_funnel, save_evaluation
+    from ..evaluation.funnel import format_funnel
     from ..groundtruth import View, fit_view, load_ground_truth
     from ..runs import format_timing_table, load_run
 
@@ -134,6 +136,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         save_evaluation(doc, args.json)
     print(format_summary(doc))
+    funnel = evaluation_funnel(doc)
+    if funnel is not None:
+        print()
+        print(format_funnel(funnel))
     print()
     print(format_timing_table(doc["timing_ms"]))
     print(f"\nwritten: {inside}" + (f", {args.json}" if args.json else ""))

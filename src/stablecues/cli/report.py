@@ -10,8 +10,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subparsers.add_parser(
         "report",
         help="static HTML report of evaluated runs",
-        description="PR curves of all runs on one plot, similarity matrix beside ground truth, timing "
-        "tables, decisions per status and match pictures, images embedded.",
+        description="PR curves of all runs (whole and zoomed), per run the loss funnel, the similarity "
+        "matrix beside the ground truth, every accepted loop (thumbnails marked true / false with the "
+        "verifier that ran; click to enlarge), decisions per status and timing tables. Plots are "
+        "embedded; loop pictures go to OUT's folder <stem>_files/ beside it.",
     )
     p.add_argument("run_dirs", type=Path, nargs="+", metavar="RUN_DIR")
     p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
@@ -20,7 +22,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--tolerance", type=int, help="tolerance of the evaluation to show")
     p.add_argument("--title", default="stablecues loop-closure evaluation")
-    p.add_argument("--max-matches", type=int, default=6, help="match pictures per run (default 6)")
+    p.add_argument(
+        "--max-loops",
+        type=int,
+        default=None,
+        metavar="N",
+        help="accepted loops per run that get a picture, spread over the run (default: all; every "
+        "accepted loop is listed either way)",
+    )
     return p
 
 
@@ -35,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         protocol=args.protocol,
         tolerance=args.tolerance,
         title=args.title,
-        max_matches=args.max_matches,
+        max_loops=args.max_loops,
     )
     print(f"written: {out}")
     return 0

@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import DatasetError, InputError
 from ..groundtruth import GroundTruth
 from ..runs import Run, read_json, write_json
+from .funnel import Funnel, loss_funnel
 from .metrics import PROTOCOLS, Evaluation, ProtocolName, evaluate_detections
 
 DetectionChoice = Literal["accepted", "all"]
@@ -74,7 +75,9 @@ def evaluate_run(
     Returns:
         (the :class:`Evaluation`, a JSON-ready dict with ``recall_at_100p``, ``auc``, ``tp``,
         ``fp``, ``fn``, ``positives``, ``protocol``, ``tolerance``, ``exclude``, ``gt_file``,
-        ``gt_sha256``, ``timing_ms`` and ``pr_curve`` among others).
+        ``gt_sha256``, ``timing_ms``, ``pr_curve`` and ``funnel`` among others; ``funnel`` is
+        :meth:`stablecues.evaluation.funnel.Funnel.to_dict`: for each positive query, the
+        stage where its true loop was lost).
 
     Raises:
         DatasetError: the ground truth is too small for the run, or (when the run's meta
@@ -116,6 +119,7 @@ def evaluate_run(
         times=times,
         query_mask=mask,
     )
+    funnel = loss_funnel(run, matrix, ev, query_mask=mask, times=times)
     doc: dict[str, Any] = {
         "run": str(run.path),
         **ev.to_dict(curve=False),
@@ -129,6 +133,7 @@ def evaluate_run(
         "status_counts": run.status_counts(),
         "timing_ms": run.timings(),
         "pr_curve": ev.curve.to_dict(),
+        "funnel": funnel.to_dict(),
     }
     return ev, doc
 
@@ -211,7 +216,19 @@ def check_evaluation(doc: dict[str, Any], source: object) -> dict[str, Any]:
     for key, (ok, want) in _EVALUATION_KEYS.items():
         if doc.get(key) is not None and not ok(doc[key]):
             raise DatasetError(f"{source}: evaluation {key!r} should be {want}, found {doc[key]!r:.40}")
+    if doc.get("funnel") is not None:
+        Funnel.from_dict(doc["funnel"], source)
     return doc
+
+
+def evaluation_funnel(doc: dict[str, Any]) -> Funnel | None:
+    """The loss funnel of an evaluation document, or None for one written before it was kept.
+
+    Raises:
+        DatasetError: a malformed ``funnel``.
+    """
+    value = doc.get("funnel")
+    return None if value is None else Funnel.from_dict(value, doc.get("run", "evaluation"))
 
 
 def run_evaluations(run: Run) -> dict[str, dict[str, Any]]:

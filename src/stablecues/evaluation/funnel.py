@@ -31,9 +31,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from ..errors import DatasetError
 from ..runs import Run
 from .metrics import Evaluation, eligible_limit
 
@@ -70,8 +72,40 @@ class Funnel:
     positives: int
 
     def to_dict(self) -> dict[str, object]:
+        """JSON-ready: ``{"counts": {stage: n}, "positives": n, "rows": {"frame": stage}}``."""
         return {"counts": dict(self.counts), "positives": self.positives,
                 "rows": {str(k): v for k, v in sorted(self.rows.items())}}
+
+    @classmethod
+    def from_dict(cls, doc: object, source: object = "funnel") -> Funnel:
+        """The funnel of an evaluation file's ``"funnel"`` object (see :meth:`to_dict`).
+
+        Raises:
+            DatasetError: naming ``source``: not an object, unknown stages, counts that are not
+                whole numbers >= 0 or do not add up to ``positives``, or malformed rows.
+        """
+        if not isinstance(doc, Mapping):
+            raise DatasetError(f"{source}: the funnel should be an object, found {doc!r:.40}")
+        counts, positives, rows = doc.get("counts"), doc.get("positives"), doc.get("rows", {})
+        known = (*STAGES, "unknown")
+        if not isinstance(counts, Mapping) or not all(
+            k in known and _count(v) for k, v in counts.items()
+        ):
+            raise DatasetError(f"{source}: funnel counts should map stages ({', '.join(known)}) "
+                               f"to whole numbers >= 0, found {counts!r:.60}")
+        if not _count(positives) or sum(counts.values()) != positives:
+            raise DatasetError(f"{source}: funnel positives should be the sum of its counts "
+                               f"({sum(counts.values())}), found {positives!r:.20}")
+        if not isinstance(rows, Mapping) or not all(
+            isinstance(k, str) and k.isdigit() and v in known for k, v in rows.items()
+        ):
+            raise DatasetError(f"{source}: funnel rows should map frame numbers to stages")
+        return cls({str(k): int(v) for k, v in counts.items()},
+                   {int(k): str(v) for k, v in rows.items()}, int(positives))
+
+
+def _count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
 def _truth_mask(gt: np.ndarray, limit: np.ndarray, i: int, tol: int) -> np.ndarray:
@@ -121,7 +155,14 @@ def _stage(status: str, extra: Mapping[str, object], truth: np.ndarray, accepted
     return "wrong_island"
 
 
-def loss_funnel(run: Run, gt: np.ndarray, ev: Evaluation, *, query_mask: np.ndarray | None = None) -> Funnel:
+def loss_funnel(
+    run: Run,
+    gt: np.ndarray,
+    ev: Evaluation,
+    *,
+    query_mask: np.ndarray | None = None,
+    times: np.ndarray | None = None,
+) -> Funnel:
     """The stage at which each positive query of an evaluated run lost its true loop.
 
     Args:
@@ -129,12 +170,16 @@ def loss_funnel(run: Run, gt: np.ndarray, ev: Evaluation, *, query_mask: np.ndar
         gt: (N, N) bool ground truth the run was evaluated against (project convention).
         ev: the evaluation (protocol, tolerance, exclusion, 100 %-precision threshold).
         query_mask: (N,) bool queries to count (two-pass sets), or None for all.
+        times: (N,) float64 frame timestamps; needed when the evaluation excluded seconds
+            (``ev.exclude_s > 0``).
 
     Returns:
-        the :class:`Funnel`; its ``found`` count equals ``ev.tp_at_100p``.
+        the :class:`Funnel`; when ``ev`` scored the accepted detections only (the default of
+        :func:`~stablecues.evaluation.evaluate.run_detections`), its ``found`` count equals
+        ``ev.tp_at_100p``.
     """
     n = gt.shape[0]
-    limit = eligible_limit(n, ev.exclude)
+    limit = eligible_limit(n, ev.exclude, exclude_s=ev.exclude_s, times=times)
     tol = ev.tolerance if ev.protocol == "tolerance" else 0
     widen = ev.tolerance if ev.protocol == "ibow" else 0
     extras = {int(e.get("frame", -1)): e for e in run.extra()}
