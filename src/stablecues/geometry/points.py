@@ -37,7 +37,7 @@ KINECT_DEPTH_COEFF = 1.425e-3
 
 #: Effective disparity noise in pixels of sparse stereo with a parabola sub-pixel fit. Sub-pixel
 #: estimators reach ~0.1-0.2 px on clean texture; calibration/rectification error and
-#: patch foreshortening raise it, and ~0.3 px is what we measured on EuRoC (METHOD.md section 3).
+#: patch foreshortening raise it, and ~0.3 px is what we measured on EuRoC (docs/method.md section 6).
 STEREO_DISPARITY_SIGMA = 0.3
 
 

@@ -21,7 +21,7 @@ Tolerance on each side's difference ``delta = L_query - L_candidate``:
   a correct side fails it with probability 0.27 % under Gaussian noise (0.8 % for a
   triangle's three sides).
 * ``"relative"`` (the paper, 2 %): ``|delta| <= relative_tolerance * (L_query + L_candidate) / 2``.
-  With stereo depth noise of 3-10 % (METHOD.md section 3) it rejects most correct triangles.
+  With stereo depth noise of 3-10 % (docs/method.md section 6) it rejects most correct triangles.
 * ``"similar"``: similar triangles, for monocular points whose scale is unknown (each frame's
   reconstruction has its own). The triangle's scale ``s = P_query / P_candidate`` (ratio of the
   perimeters) is fitted, and each side must satisfy ``|L_query - s L_candidate| <= k_sigma *

@@ -41,7 +41,7 @@ class VerificationConfig:
             matches only 20-50 % of true triangles agree (0.6^3 to 0.8^3), which rules out "all"
             and "majority"; two congruent triangles from wrong matches, under a 3-sigma gate,
             are improbable, and PnP (``min_pnp_inliers``) must confirm the loop as well.
-        min_pnp_inliers: PnP inliers an accepted loop needs (about 20, METHOD.md section 3;
+        min_pnp_inliers: PnP inliers an accepted loop needs (about 20, docs/method.md section 6;
             a pose from fewer is not reliable enough for a pose graph). Also the acceptance
             threshold of the PnP-only verifier.
         pnp_reprojection_px: PnP RANSAC threshold (see :class:`~stablecues.geometry.PnPConfig`).
