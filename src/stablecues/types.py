@@ -5,9 +5,10 @@ Arrays inside these objects are never modified in place by stablecues; treat the
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias, cast
 
 import numpy as np
 
@@ -160,6 +161,188 @@ class Features:
             image_size=self.image_size,
         )
 
+    @staticmethod
+    def from_cv2(
+        keypoints: Sequence[Any],
+        descriptors: np.ndarray | None,
+        *,
+        image_size: tuple[int, int],
+        kind: DescriptorKind = ORB_DESCRIPTOR,
+    ) -> Features:
+        """Features from what OpenCV's ``detectAndCompute`` returns.
+
+        Args:
+            keypoints: ``cv2.KeyPoint`` objects (anything with ``pt``, ``octave``, ``angle``,
+                ``response`` and ``size``). SIFT's packed octaves are unpacked; plain octaves
+                (ORB's 0, 1, ...) are kept as they are.
+            descriptors: (N, D) uint8 binary or (N, D) float32 descriptors, one row per keypoint;
+                None with no keypoints (OpenCV returns None then).
+            image_size: (width, height) of the image the keypoints were found in.
+            kind: the descriptor kind of the empty result when there are no keypoints.
+
+        Raises:
+            InputError: a keypoint without those attributes, descriptors of another dtype, shape
+                or count, or an invalid image size.
+        """
+        size = _image_size(image_size)
+        if isinstance(keypoints, np.ndarray) or not isinstance(keypoints, Sequence):
+            raise InputError(f"keypoints: expected a list of cv2.KeyPoint, got {type(keypoints).__name__} "
+                             "(for an (N, 2) array of pixels use Features.from_arrays)")
+        n = len(keypoints)
+        if descriptors is None:
+            if n:
+                raise InputError(f"descriptors: expected one per keypoint ({n}), got None")
+            return Features.empty(size, kind)
+        DescriptorKind.of(descriptors)
+        if descriptors.shape[0] != n:
+            raise InputError(f"descriptors: expected one per keypoint ({n}), got shape {descriptors.shape}")
+        rows = np.empty((n, 6), np.float64)
+        for i, k in enumerate(keypoints):
+            try:
+                rows[i] = (*k.pt, k.octave, k.angle, k.response, k.size)
+            except (AttributeError, TypeError, ValueError):
+                raise InputError(f"keypoints[{i}]: expected a cv2.KeyPoint (pt, octave, angle, response, "
+                                 f"size), got {type(k).__name__}") from None
+        if not np.isfinite(rows).all():
+            bad = int(np.flatnonzero(~np.isfinite(rows).all(axis=1))[0])
+            raise InputError(f"keypoints[{bad}]: expected finite values, got {rows[bad].tolist()}")
+        low = rows[:, 2].astype(np.int64) & 0xFF  # SIFT packs layer << 8 | octave as a signed byte
+        return Features(
+            keypoints=rows[:, :2].astype(np.float32),
+            descriptors=np.ascontiguousarray(descriptors),
+            octaves=np.where(low >= 128, low - 256, low).astype(np.int16),
+            angles=rows[:, 3].astype(np.float32),
+            responses=rows[:, 4].astype(np.float32),
+            sizes=rows[:, 5].astype(np.float32),
+            image_size=size,
+        )
+
+    @staticmethod
+    def from_arrays(
+        keypoints: np.ndarray,
+        descriptors: np.ndarray,
+        *,
+        image_size: tuple[int, int],
+        octaves: np.ndarray | None = None,
+        angles: np.ndarray | None = None,
+        responses: np.ndarray | None = None,
+        sizes: np.ndarray | None = None,
+    ) -> Features:
+        """Features from plain arrays, converted to the dtypes :class:`Features` keeps.
+
+        Args:
+            keypoints: (N, 2) pixel coordinates (x, y), any real dtype, finite.
+            descriptors: (N, D) uint8 binary or (N, D) float32 descriptors (not converted: the
+                dtype says which kind they are).
+            image_size: (width, height) of the image the keypoints were found in.
+            octaves: (N,) integer pyramid levels in [-1, 127]; default 0 (full resolution).
+            angles: (N,) orientations in degrees; default -1 (OpenCV's "not computed").
+            responses: (N,) detector responses; default 0.
+            sizes: (N,) patch diameters in pixels; default ORB's, ``31 * 1.2 ** octave``.
+
+        Raises:
+            InputError: any array of the wrong shape or dtype, non-finite values, or octaves out
+                of range; the message names the array, the expected and the found form.
+        """
+        size = _image_size(image_size)
+        if not isinstance(keypoints, np.ndarray) or not (
+            np.issubdtype(keypoints.dtype, np.floating) or np.issubdtype(keypoints.dtype, np.integer)
+        ):
+            found = keypoints.dtype if isinstance(keypoints, np.ndarray) else type(keypoints).__name__
+            raise InputError(f"keypoints: expected an (N, 2) array of real numbers, got {found}")
+        check_array("keypoints", keypoints, shape=(None, 2))
+        n = keypoints.shape[0]
+        DescriptorKind.of(descriptors)
+        if descriptors.shape[0] != n:
+            raise InputError(f"descriptors: expected one per keypoint ({n}), got shape {descriptors.shape}")
+        xy = keypoints.astype(np.float32)
+        if not np.isfinite(xy).all():
+            raise InputError("keypoints: expected finite pixel coordinates, got NaN or infinity")
+        octv = np.zeros(n, np.int16) if octaves is None else _octaves(octaves, n)
+        return Features(
+            keypoints=xy,
+            descriptors=np.ascontiguousarray(descriptors),
+            octaves=octv,
+            angles=_real_vector("angles", angles, n, -1.0),
+            responses=_real_vector("responses", responses, n, 0.0),
+            sizes=(np.float32(31.0) * np.power(np.float32(1.2), octv.astype(np.float32))).astype(np.float32)
+            if sizes is None else _real_vector("sizes", sizes, n, 0.0),
+            image_size=size,
+        )
+
+    @staticmethod
+    def coerce(
+        value: object, image_size: tuple[int, int], *, kind: DescriptorKind = ORB_DESCRIPTOR
+    ) -> Features:
+        """``value`` as Features: Features as they are, or a ``(keypoints, descriptors)`` pair,
+        the keypoints a list of ``cv2.KeyPoint`` (:meth:`from_cv2`) or an (N, 2) array of pixels
+        (:meth:`from_arrays`).
+
+        Args:
+            value: Features or a (keypoints, descriptors) pair.
+            image_size: (width, height) of the frame's image, for a pair.
+            kind: the descriptor kind of an empty pair (no keypoints, descriptors None).
+
+        Raises:
+            InputError: anything else, or a malformed pair.
+        """
+        if isinstance(value, Features):
+            return value
+        if not isinstance(value, tuple | list) or len(value) != 2:
+            found = f"a {len(value)}-item {type(value).__name__}" if isinstance(value, tuple | list) else (
+                type(value).__name__)
+            raise InputError(f"features: expected Features or a (keypoints, descriptors) pair, got {found}")
+        kps, desc = value
+        if desc is not None and not isinstance(desc, np.ndarray):
+            raise InputError(f"descriptors: expected a numpy array, got {type(desc).__name__}")
+        if isinstance(kps, np.ndarray):
+            if desc is None:
+                raise InputError("descriptors: expected an (N, D) array, got None")
+            return Features.from_arrays(kps, desc, image_size=image_size)
+        return Features.from_cv2(kps, desc, image_size=image_size, kind=kind)
+
+
+FeaturesLike: TypeAlias = "Features | tuple[Any, Any]"
+"""What the API accepts as a frame's features: :class:`Features`, or a ``(keypoints,
+descriptors)`` pair as OpenCV gives it (see :meth:`Features.coerce`)."""
+
+
+def _image_size(size: object) -> tuple[int, int]:
+    """``(width, height)`` as two positive ints, or InputError."""
+    ok = isinstance(size, tuple | list) and len(size) == 2 and all(
+        isinstance(v, int | np.integer) and not isinstance(v, bool) and v > 0 for v in size)
+    if not ok:
+        raise InputError(f"image_size: expected (width, height), two positive integers, got {size!r}")
+    w, h = cast("tuple[int, int]", size)
+    return int(w), int(h)
+
+
+def _real_vector(name: str, values: object, n: int, default: float) -> np.ndarray:
+    """(n,) float32 from a real-valued array (``default`` everywhere when None)."""
+    if values is None:
+        return np.full(n, default, np.float32)
+    if not isinstance(values, np.ndarray) or not (
+        np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
+    ):
+        found = values.dtype if isinstance(values, np.ndarray) else type(values).__name__
+        raise InputError(f"{name}: expected an ({n},) array of real numbers, got {found}")
+    check_array(name, values, shape=(n,))
+    out = values.astype(np.float32)
+    if not np.isfinite(out).all():
+        raise InputError(f"{name}: expected finite values, got NaN or infinity")
+    return out
+
+
+def _octaves(values: object, n: int) -> np.ndarray:
+    """(n,) int16 pyramid levels in [-1, 127] from an integer array."""
+    if not isinstance(values, np.ndarray) or not np.issubdtype(values.dtype, np.integer):
+        found = values.dtype if isinstance(values, np.ndarray) else type(values).__name__
+        raise InputError(f"octaves: expected an ({n},) integer array, got {found}")
+    check_array("octaves", values, shape=(n,))
+    if n and (values.min() < -1 or values.max() > 127):
+        raise InputError(f"octaves: expected pyramid levels in [-1, 127], got {values.min()}..{values.max()}")
+    return values.astype(np.int16)
+
 
 @dataclass(frozen=True)
 class BowVector:
@@ -274,12 +457,20 @@ class Frame:
         depth: (H, W) float32 depth in metres registered to ``image``, NaN where unknown.
         labels: (H, W) uint8 CamVid class ids (0..11) for ``image``.
         pose: (4, 4) float64 camera-to-world pose of the left camera (ground truth), or None.
-        calibration: the object :func:`stablecues.geometry.load_calibration` returns, or None
-            when there is no calibration file or the geometry module is not available.
+        calibration: the object :func:`stablecues.geometry.load_calibration` returns, or the
+            path of a calibration file (the detector loads it once per path), or None: the
+            detector's own calibration then applies.
         calibration_path: the calibration file the dataset found (whether or not it could be
             loaded), or None.
-        keypoints: (N, 2) float32 keypoints handed in by a SLAM system, or None.
-        points3d: (N, 3) float32 3D point per keypoint in the camera frame (NaN unknown), or None.
+        features: the SLAM system's own features, or None to extract ORB features here: a
+            :class:`Features`, or a ``(keypoints, descriptors)`` pair (a list of ``cv2.KeyPoint``
+            or an (N, 2) pixel array, and (N, D) uint8 or float32 descriptors), turned into
+            Features on construction with ``image``'s size.
+        points3d: (N, 3) float 3D point per feature in the camera frame in metres (NaN where the
+            feature has no map point), or None; needs ``features``, in the same order.
+
+    Raises:
+        InputError: ``features`` that are neither Features nor a well-formed pair.
     """
 
     index: int
@@ -290,7 +481,25 @@ class Frame:
     depth: np.ndarray | None = None
     labels: np.ndarray | None = None
     pose: np.ndarray | None = None
-    calibration: Calibration | None = None
+    calibration: Calibration | str | Path | None = None
     calibration_path: Path | None = None
-    keypoints: np.ndarray | None = None
+    features: FeaturesLike | None = None
     points3d: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.features is not None and not isinstance(self.features, Features):
+            size = frame_image_size(self)
+            object.__setattr__(self, "features", Features.coerce(self.features, size))
+
+
+def frame_image_size(frame: Frame) -> tuple[int, int]:
+    """(width, height) of a frame's image.
+
+    Raises:
+        InputError: the image is not an (H, W) or (H, W, C) array.
+    """
+    image = frame.image
+    if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or 0 in image.shape[:2]:
+        found = image.shape if isinstance(image, np.ndarray) else type(image).__name__
+        raise InputError(f"frame {frame.index} image: expected an (H, W) or (H, W, C) array, got {found}")
+    return int(image.shape[1]), int(image.shape[0])

@@ -89,6 +89,27 @@ def test_dynamic_mode_drops_only_confident_dynamic_classes(labels: np.ndarray) -
     assert report.passed.all()
 
 
+def test_frames_outside_the_networks_domain_keep_every_keypoint(labels: np.ndarray) -> None:
+    """min_frame_certainty: a frame the network is unsure of as a whole drops nothing."""
+    feats = make_features(POINTS)
+    cfg = MaskingConfig(mode="dynamic", min_kept=0, min_kept_fraction=0.0, min_frame_certainty=0.8)
+
+    def seg(sure: float) -> SegmentationResult:
+        prob = np.full((11, 5, 10), (1.0 - sure) / 10, np.float32)
+        prob[CAR] = sure
+        return SegmentationResult(labels, np.ones(labels.shape, np.float32),
+                                  np.zeros(labels.shape, np.float32), 1, prob)
+
+    kept, report = select_features(feats, seg(0.7), cfg)  # certainty 0.67 < 0.8
+    assert report.out_of_domain and len(kept) == len(feats) and report.passed.all() and not report.fallback
+    kept, report = select_features(feats, seg(0.95), cfg)  # certainty 0.945: the car is dropped
+    assert not report.out_of_domain and report.passed.tolist() == [True, True, True, True, False, True]
+    assert seg(1.0 / 11).frame_certainty() == pytest.approx(0.0, abs=1e-6)
+    assert make_seg(labels).frame_certainty() == 1.0  # labels handed in: certain
+    with pytest.raises(ConfigError, match="min_frame_certainty"):
+        MaskingConfig(min_frame_certainty=1.5)
+
+
 def test_dilation_keeps_points_near_static_structure(labels: np.ndarray) -> None:
     feats = make_features([(5.0, 3.0), (5.0, 0.0), (5.0, 12.0)])  # sky 2 px above the building, far sky, road
     hard = select_features(

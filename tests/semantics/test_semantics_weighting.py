@@ -33,13 +33,40 @@ def test_sure_classes_take_their_stability_and_flat_posteriors_fade_out() -> Non
     prob[BUILDING, :, :5] = 1.0  # ... but sure of a building on the left
     prob[:, :, 15:] = 0.0
     prob[CAR, :, 15:] = 1.0  # and of a car on the right
-    cfg = WeightingConfig(stability={"Building": 1.5, "Car": 0.2})
+    cfg = WeightingConfig(stability={"Building": 1.5, "Car": 0.2}, domain=None)
     w = feature_weights(_features([(2.0, 20.0), (40.0, 20.0), (78.0, 20.0)]), _seg(prob), cfg)
     np.testing.assert_allclose(w, [1.5, 1.0, 0.2])
     assert feature_weights(_features([(78.0, 20.0)]), _seg(prob), WeightingConfig(
-        stability={"Car": 0.0}, min_weight=0.05))[0] == pytest.approx(0.05)  # suppressed, not removed
+        stability={"Car": 0.0}, min_weight=0.05, domain=None))[0] == pytest.approx(0.05)  # suppressed
     assert feature_weights(_features([(2.0, 20.0)]), _seg(prob), WeightingConfig(
         stability={"Building": 1.5}, strength=0.0))[0] == pytest.approx(1.0)
+
+
+def test_frames_the_network_is_unsure_of_fade_to_plain_bow() -> None:
+    """The frame as a whole gates the weighting: a frame whose mean certainty is below
+    domain[0] is weighted 1 everywhere, above domain[1] fully, linearly between."""
+    def frame(sure: float) -> SegmentationResult:
+        # a posterior sure of a car on the right, and equally sure of something everywhere
+        prob = np.full((NUM_CLASSES, 10, 20), (1.0 - sure) / (NUM_CLASSES - 1))
+        prob[BUILDING] = sure
+        prob[:, :, 15:] = (1.0 - sure) / (NUM_CLASSES - 1)
+        prob[CAR, :, 15:] = sure
+        return _seg(prob)
+
+    lam = lambda sure: (sure - 1 / NUM_CLASSES) / (1 - 1 / NUM_CLASSES)  # noqa: E731
+    cfg = WeightingConfig(stability={"Car": 0.2}, domain=(0.75, 0.85))
+    car = _features([(78.0, 20.0)])
+    for sure in (0.6, 0.76, 0.8, 0.84, 0.95, 1.0):
+        seg = frame(sure)
+        assert seg.frame_certainty() == pytest.approx(lam(sure))
+        gate = float(np.clip((lam(sure) - 0.75) / 0.10, 0.0, 1.0))
+        stability = sure * 0.2 + (1.0 - sure) * 1.0  # the posterior's expected stability
+        expected = 1.0 + gate * lam(sure) * (stability - 1.0)
+        assert feature_weights(car, seg, cfg)[0] == pytest.approx(expected)
+    assert feature_weights(car, frame(0.6), cfg)[0] == 1.0  # out of domain: plain BoW
+    assert feature_weights(car, frame(1.0), cfg)[0] == pytest.approx(0.2)  # in domain: full
+    with pytest.raises(ConfigError, match="domain"):
+        WeightingConfig(domain=(0.9, 0.8))
 
 
 def test_oracle_labels_are_certain() -> None:

@@ -109,6 +109,11 @@ class DetectorConfig:
             "inliers", the geometric inliers of the verified loop (plus the normalised BoW
             score, below 1, to break ties), or "bow", the normalised BoW score alone (as
             DLoopDetector). Without verification it is always the BoW score.
+        domain_window: how many recent frames of the stream (this one included) decide whether
+            the stream is in the segmentation network's domain: the median of their frame
+            certainties gates the weighting (``weighting.domain``) and the mask
+            (``masking.min_frame_certainty``), so one unsure frame of a street drive stays in
+            and one sure frame of a corridor stays out. 1: every frame alone.
     """
 
     features: ExtractorConfig = field(
@@ -123,8 +128,11 @@ class DetectorConfig:
     weighting: WeightingConfig | None = None
     monocular: MonocularConfig | None = None
     confidence: Literal["inliers", "bow"] = "inliers"
+    domain_window: int = 30
 
     def __post_init__(self) -> None:
+        if self.domain_window < 1:
+            raise ConfigError(f"domain_window: expected >= 1 frames, got {self.domain_window}")
         if self.confidence not in ("inliers", "bow"):
             raise ConfigError(f"confidence: expected 'inliers' or 'bow', got {self.confidence!r}")
         if self.semantic_source not in ("network", "labels"):
@@ -141,6 +149,10 @@ def _mask(name: str | None) -> MaskingConfig | None:
     return None if name is None else MASKING_PRESETS[name]
 
 
+#: the default's masking: cars and people dropped on frames of the network's domain only
+_DEFAULT_MASKING: dict[str, Any] = {"min_frame_certainty": 0.8}
+
+
 #: the query settings that measured best on the development sets (README, bench/bench_loops.py):
 #: the 5 best islands verified, the best-fitting neighbour of the accepted entry, no temporal window;
 #: the last 20 frames excluded (a 10-frame window measured better on the sparse CamVid revisits but
@@ -149,7 +161,9 @@ _MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal
 
 #: preset name -> (masking preset, verification preset, other overrides, one line of description)
 _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
-    "default": ("dynamic", "default", {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1},
+    "default": ("dynamic", "default",
+                {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1,
+                 "masking": _DEFAULT_MASKING},
                 "the measured best: features weighted by the stability of their class, cars and people "
                 "dropped (network, T = 1); the 5 best islands verified (triangles with 3D, else the "
                 "fundamental matrix with inlier count and ratio); no temporal window"),
@@ -160,7 +174,7 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
                  "ablation: the default's weighting without dropping cars and people"),
     "mono-triangles": ("dynamic", "default",
                        {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1,
-                        "monocular": {}},
+                        "monocular": {}, "masking": _DEFAULT_MASKING},
                        "the default + monocular 3D: frames without other 3D triangulated against a "
                        "neighbour, loops checked by similar triangles where they can be formed"),
     "paper": ("paper", "paper", {},

@@ -9,7 +9,9 @@ Per frame, as DLoopDetector (Galvez-Lopez & Tardos 2012) with the paper's additi
 4. candidates grouped into islands of nearby entries; the best island must be temporally
    consistent with the islands of the previous ``temporal_k`` frames;
 5. geometric verification of the island's best entry (3D triangles, PnP or the fundamental
-   matrix); the accepted loop comes with the relative pose;
+   matrix); the accepted loop comes with the relative pose (from PnP with a calibration; from
+   the matched 3D points alone, a RANSAC rigid alignment, when a SLAM system hands in map
+   points without one);
 6. the frame is stored (with its keypoints and 3D points) whatever the decision.
 
 The state lives in the database file: reopening a detector on the same file continues where
@@ -18,6 +20,7 @@ it stopped (the temporal window is restored from the last entries' records).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -29,14 +32,15 @@ import numpy as np
 from ..database import Database
 from ..errors import ConfigError
 from ..geometry.camera import Calibration
-from ..geometry.points import relative_points_meta
-from ..types import BowVector, Features, Frame
+from ..geometry.points import Points3D, relative_points_meta
+from ..geometry.rotations import quat_from_rotvec, quat_to_matrix
+from ..types import BowVector, FeaturesLike, Frame
 from ..verification.result import Verification
 from ..verification.verifier import Verifier
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
-from .prepare import FramePreparer, PreparedFrame, Segmenter
+from .prepare import FramePreparer, PreparedFrame, Segmenter, as_calibration
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +67,137 @@ def compute_islands(ids: np.ndarray, scores: np.ndarray, gap: int) -> list[Islan
         islands.append(Island(int(part_ids[0]), int(part_ids[-1]), int(part_ids[b]),
                               float(part_scores[b]), float(part_scores.sum())))
     return islands
+
+
+def _kabsch(query: np.ndarray, cand: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rotation and translation with ``query ~ R @ cand + t`` (Kabsch /
+    Umeyama without scale): (3, 3) and (3,) float64."""
+    w = weights / weights.sum()
+    qc, cc = w @ query, w @ cand
+    h = (cand - cc).T @ ((query - qc) * w[:, None])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rot, qc - rot @ cc
+
+
+def _covariances(points: Points3D, index: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) covariance of each point: its depth sigma along the viewing ray, its lateral
+    sigma across it."""
+    xyz = points.xyz[index].astype(np.float64)
+    dist = np.linalg.norm(xyz, axis=1)
+    u = xyz / dist[:, None]
+    along = np.square(points.sigma_depth[index] * dist / xyz[:, 2])
+    across = np.square(points.sigma_lateral[index].astype(np.float64))
+    uu = u[:, :, None] * u[:, None, :]
+    return (along - across)[:, None, None] * uu + across[:, None, None] * np.eye(3)
+
+
+def _chi2(q: np.ndarray, c: np.ndarray, cov_q: np.ndarray, cov_c: np.ndarray, rot: np.ndarray,
+          t: np.ndarray) -> np.ndarray:
+    """(M,) squared Mahalanobis distance of ``q - (rot @ c + t)`` under both points' noise."""
+    r = q - c @ rot.T - t
+    cov = cov_q + rot @ cov_c @ rot.T + 1e-12 * np.eye(3)
+    return np.einsum("ij,ij->i", r, np.linalg.solve(cov, r[:, :, None])[:, :, 0])
+
+
+def _refine_rigid(q: np.ndarray, c: np.ndarray, cov_q: np.ndarray, cov_c: np.ndarray, rot: np.ndarray,
+                  t: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the sum of squared Mahalanobis residuals (depth errors weigh little along
+    the rays, lateral ones much): the refined ``rot, t``."""
+    for _ in range(iterations):
+        p = c @ rot.T + t
+        r = q - p
+        w = np.linalg.inv(cov_q + rot @ cov_c @ rot.T + 1e-12 * np.eye(3))
+        jac = np.zeros((len(q), 3, 6))  # d r / d (w, delta) for rot <- exp(w) rot, t <- exp(w) t + delta
+        jac[:, 0, 1], jac[:, 0, 2], jac[:, 1, 0] = -p[:, 2], p[:, 1], p[:, 2]  # [p]x
+        jac[:, 1, 2], jac[:, 2, 0], jac[:, 2, 1] = -p[:, 0], -p[:, 1], p[:, 0]
+        jac[:, :, 3:] = -np.eye(3)
+        jw = np.transpose(jac, (0, 2, 1)) @ w
+        h = np.einsum("nij,njk->ik", jw, jac)
+        g = np.einsum("nij,nj->i", jw, r)
+        try:
+            step = np.linalg.solve(h, -g)
+        except np.linalg.LinAlgError:
+            break
+        dr = quat_to_matrix(quat_from_rotvec(step[:3]))
+        rot, t = dr @ rot, dr @ t + step[3:]
+        if np.linalg.norm(step) < 1e-9:
+            break
+    return rot, t
+
+
+def _ransac_iterations(inlier_fraction: float, confidence: float) -> int:
+    """Triples to draw so that one is all inliers with ``confidence`` (huge when none fits)."""
+    p = inlier_fraction**3
+    if p <= 0.0:
+        return 2**31
+    if p >= 1.0:
+        return 1
+    return int(math.ceil(math.log(1.0 - confidence) / math.log1p(-p)))
+
+
+def align_points(
+    query: Points3D,
+    candidate: Points3D,
+    *,
+    max_chi2: float = 11.34,
+    min_inliers: int = 6,
+    confidence: float = 0.999,
+    max_iterations: int = 500,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The rigid motion taking matched candidate points onto query points, robust to wrong
+    matches (MSAC on triples, then weighted Kabsch refits on the inliers).
+
+    A pair is an inlier when its residual's squared Mahalanobis distance under the two points'
+    covariances (depth sigma along the viewing ray, lateral sigma across it) is under
+    ``max_chi2`` (11.34: 99 % of 3-dof chi-square).
+
+    Args:
+        query: (M,) points of the matches in the query camera.
+        candidate: (M,) the matched points in the candidate camera.
+        max_chi2: inlier threshold on the squared Mahalanobis distance.
+        min_inliers: fewest inliers for a pose.
+        confidence: RANSAC's stopping confidence.
+        max_iterations: most triples tried.
+        seed: the sampling seed (results are deterministic).
+
+    Returns:
+        ``(rotation (3, 3), translation (3,), inliers (M,) bool, rms metres)`` with
+        ``X_query = rotation @ X_candidate + translation``, or None without ``min_inliers``.
+    """
+    valid = np.flatnonzero(query.valid & candidate.valid)
+    if valid.size < max(min_inliers, 3):
+        return None
+    q, c = query.xyz[valid].astype(np.float64), candidate.xyz[valid].astype(np.float64)
+    cov_q, cov_c = _covariances(query, valid), _covariances(candidate, valid)
+    weights = 3.0 / np.maximum(np.trace(cov_q, axis1=1, axis2=2) + np.trace(cov_c, axis1=1, axis2=2), 1e-12)
+    rng = np.random.default_rng(seed)
+    best, best_cost = np.zeros(valid.size, bool), math.inf
+    n_iter, i = max_iterations, 0
+    while i < n_iter:
+        i += 1
+        s = rng.choice(valid.size, 3, replace=False)
+        if np.linalg.norm(np.cross(c[s[1]] - c[s[0]], c[s[2]] - c[s[0]])) < 1e-9:
+            continue  # a degenerate (collinear) triple
+        ratio = _chi2(q, c, cov_q, cov_c, *_kabsch(q[s], c[s], np.ones(3))) / max_chi2
+        cost = float(np.minimum(ratio, 1.0).sum())  # MSAC: a tighter fit of as many pairs wins
+        if cost < best_cost:
+            best, best_cost = ratio < 1.0, cost
+            n_iter = min(n_iter, _ransac_iterations(best.sum() / valid.size, confidence))
+    for _ in range(3):  # refit on the inliers, reselect
+        if best.sum() < max(min_inliers, 3):
+            return None
+        rot, t = _kabsch(q[best], c[best], weights[best])
+        rot, t = _refine_rigid(q[best], c[best], cov_q[best], cov_c[best], rot, t)
+        best = _chi2(q, c, cov_q, cov_c, rot, t) < max_chi2
+    if best.sum() < min_inliers:
+        return None
+    inliers = np.zeros(len(query), bool)
+    inliers[valid[best]] = True
+    rms = float(np.sqrt(np.mean(np.sum(np.square(q[best] - c[best] @ rot.T - t), axis=1))))
+    return rot, t, inliers, rms
 
 
 @dataclass
@@ -92,8 +227,16 @@ class LoopDetector:
         vocabulary: the vocabulary; default: the shipped one.
         database: SQLite file to keep the map in (reopened and continued when it exists), or
             None to keep everything in memory.
-        calibration: camera calibration used when a frame carries none.
+        calibration: camera calibration used when a frame carries none: a
+            :class:`~stablecues.geometry.Calibration` or the path of a calibration file
+            (ORB-SLAM settings, EuRoC/Kalibr ``sensor.yaml``, KITTI ``calib.txt``) or a TUM
+            camera name (``fr1``, ``fr2``, ``fr3``).
         segmenter: a callable ``image -> SegmentationResult`` replacing the shipped network.
+
+    Raises:
+        CalibrationError: a calibration path that does not exist or does not hold one.
+        InputError: a calibration that is neither.
+        ConfigError: a vocabulary whose scoring is not a similarity in [0, 1].
     """
 
     def __init__(
@@ -101,9 +244,10 @@ class LoopDetector:
         config: DetectorConfig | None = None,
         vocabulary: Vocabulary | None = None,
         database: str | Path | None = None,
-        calibration: Calibration | None = None,
+        calibration: Calibration | str | Path | None = None,
         segmenter: Segmenter | None = None,
     ) -> None:
+        calibration = as_calibration(calibration)  # a bad path fails before the database opens
         self.config = config or DetectorConfig()
         self.vocabulary = vocabulary or default_vocabulary()
         if self.vocabulary.scoring in (Scoring.KL, Scoring.DOT_PRODUCT):
@@ -184,14 +328,18 @@ class LoopDetector:
         return self._window_n
 
     # ------------------------------------------------------------------ the loop
-    def process(self, frame: Frame, features: Features | None = None, *, store: bool = True) -> LoopDecision:
+    def process(
+        self, frame: Frame, features: FeaturesLike | None = None, *, store: bool = True
+    ) -> LoopDecision:
         """Detect a loop for one frame, then store the frame.
 
         Args:
             frame: the frame (image, timestamp, optional right / depth image, map points,
                 calibration, pose).
             features: the frame's features when a SLAM system hands its own in (their order
-                must match ``frame.points3d``); extracted here otherwise.
+                must match ``frame.points3d``): :class:`~stablecues.types.Features` or a
+                ``(keypoints, descriptors)`` pair as OpenCV's ``detectAndCompute`` returns it
+                (or ``frame.features``); extracted here otherwise.
             store: add the frame to the database afterwards (False: a pure query, as for the
                 query pass of a place-recognition benchmark).
 
@@ -231,8 +379,9 @@ class LoopDetector:
             mask_fallback=prep.mask_fallback, timings=timings,
         )
 
-    def store(self, frame: Frame, features: Features | None = None) -> int:
-        """Add a frame to the database without looking for a loop; returns its entry id."""
+    def store(self, frame: Frame, features: FeaturesLike | None = None) -> int:
+        """Add a frame to the database without looking for a loop; returns its entry id
+        (``features`` as in :meth:`process`)."""
         prep = self.preparer.prepare(frame, features)
         entry = len(self.db)
         self._store(frame, prep)
@@ -258,6 +407,8 @@ class LoopDetector:
         for e, r in self._refine(prep, verifier, best.island, checked):
             if r.accepted and r.n_inliers > result.n_inliers:
                 entry, result = e, r
+        if result.pose is None and verifier.camera is None:
+            result = self._align(prep, verifier, entry, result)
         if entry != found.candidate:
             norm = dict(found.results)
             found.candidate, found.island = entry, best.island
@@ -278,6 +429,26 @@ class LoopDetector:
                 checked.append(Checked(island, self._entry_frames[e], result))
                 out.append((e, result))
         return out
+
+    def _align(
+        self, prep: PreparedFrame, verifier: Verifier, entry: int, result: Verification
+    ) -> Verification:
+        """The relative pose of an accepted loop from its matched 3D points alone (map points
+        without a calibration, so no camera for PnP): ``result`` with the pose and its inliers,
+        or unchanged when the points are not metric in both frames or fit no rigid motion."""
+        cand = verifier.view_of_entry(self.db.entry(entry)).points
+        query = prep.points
+        if query is None or cand is None or not (query.metric and cand.metric):
+            return result
+        m = result.matches
+        fit = align_points(query.subset(m.query), cand.subset(m.candidate))
+        if fit is None:
+            return dataclasses.replace(result, reason=result.reason + "; no rigid 3D-3D fit, no pose")
+        rotation, translation, inliers, rms = fit
+        return dataclasses.replace(
+            result, rotation=rotation, translation=translation, inliers=inliers,
+            reason=result.reason + f"; pose from a 3D-3D fit: {int(inliers.sum())} of {len(m)} matches "
+                                   f"within 99 % noise, rms {rms:.3f} m")
 
     def _store(self, frame: Frame, prep: PreparedFrame) -> None:
         t = time.perf_counter()

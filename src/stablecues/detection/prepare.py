@@ -25,12 +25,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from ..config import merge
 from ..errors import ConfigError, InputError
 from ..features import make_extractor
+from ..geometry.calibration import load_calibration
 from ..geometry.camera import Calibration
 from ..geometry.depth import DepthConfig, lift_depth, lift_map_points
 from ..geometry.points import NoiseModel, Points3D
@@ -41,16 +43,38 @@ from ..semantics.classes import NUM_CLASSES
 from ..semantics.inference import SegmentationModel, SegmentationResult
 from ..semantics.masking import select_features
 from ..semantics.weighting import feature_weights
-from ..types import BowVector, Features, FeatureVector, Frame
+from ..types import BowVector, Features, FeaturesLike, FeatureVector, Frame, frame_image_size
 from ..verification.matching import match_features
 from ..verification.verifier import Verifier, View
 from ..vocabulary import Vocabulary
 from .config import DetectorConfig
 
-__all__ = ["FramePreparer", "PreparedFrame", "Segmenter"]
+__all__ = ["FramePreparer", "PreparedFrame", "Segmenter", "as_calibration"]
 
 Segmenter = Callable[[np.ndarray], SegmentationResult]
 """``image -> SegmentationResult``: the shipped network, or any replacement."""
+
+
+def as_calibration(calibration: object, what: str = "calibration") -> Calibration | None:
+    """A calibration given as an object or as the path of a calibration file (loaded here).
+
+    Args:
+        calibration: a :class:`~stablecues.geometry.Calibration`, a path (``str`` or
+            ``Path``, any format :func:`~stablecues.geometry.load_calibration` reads, or a TUM
+            camera name), or None.
+        what: what the value is, for messages.
+
+    Raises:
+        CalibrationError: a path that does not exist or does not hold a calibration.
+        InputError: anything else.
+    """
+    if calibration is None or isinstance(calibration, Calibration):
+        return calibration
+    if isinstance(calibration, str | Path):
+        return load_calibration(calibration)
+    raise InputError(f"{what}: expected a Calibration or the path of a calibration file, "
+                     f"got {type(calibration).__name__}")
+
 
 # map points from a SLAM system with nothing known of their sensor: 1 % depth noise at 1 m
 _MAP_POINT_DEPTH_NOISE = 0.01
@@ -112,7 +136,7 @@ class FramePreparer:
     Args:
         config: the detector settings (features, masking, semantic source, verification).
         vocabulary: the vocabulary for BoW vectors and direct indexes.
-        calibration: the calibration used for frames that carry none.
+        calibration: the calibration used for frames that carry none, or its file's path.
         segmenter: replaces the shipped network (``image -> SegmentationResult``).
         stereo: sparse stereo matching settings.
         depth: depth-image lifting settings.
@@ -122,7 +146,7 @@ class FramePreparer:
         self,
         config: DetectorConfig,
         vocabulary: Vocabulary,
-        calibration: Calibration | None = None,
+        calibration: Calibration | str | Path | None = None,
         segmenter: Segmenter | None = None,
         *,
         stereo: StereoConfig | None = None,
@@ -130,7 +154,8 @@ class FramePreparer:
     ) -> None:
         self.config = config
         self.vocabulary = vocabulary
-        self.calibration = calibration
+        self.calibration = as_calibration(calibration)
+        self._loaded: dict[str, Calibration | None] = {}
         self.extractor = make_extractor(config.features)
         if self.extractor.descriptor_kind != vocabulary.descriptor_kind:
             raise ConfigError(
@@ -140,6 +165,7 @@ class FramePreparer:
         self.stereo_config = stereo or StereoConfig()
         self.depth_config = depth or DepthConfig()
         self._segmenter = segmenter
+        self._certainties: deque[float] = deque(maxlen=config.domain_window)
         self._lifters: dict[int, StereoLifter] = {}
         self._verifiers: dict[int, Verifier] = {}
         self._guessed: dict[tuple[int, int], Calibration] = {}
@@ -148,8 +174,14 @@ class FramePreparer:
 
     # ------------------------------------------------------------------ per calibration
     def calibration_of(self, frame: Frame) -> Calibration | None:
-        """The frame's own calibration, else the default one."""
-        return frame.calibration if frame.calibration is not None else self.calibration
+        """The frame's own calibration (a path is loaded once), else the default one."""
+        own = frame.calibration
+        if own is None or isinstance(own, Calibration):
+            return own if own is not None else self.calibration
+        key = str(own) if isinstance(own, str | Path) else ""
+        if key not in self._loaded:
+            self._loaded[key] = as_calibration(own, f"frame {frame.index} calibration")
+        return self._loaded[key]
 
     def lifter(self, calib: Calibration) -> StereoLifter:
         """The stereo lifter of a stereo calibration (built once; it caches remap tables)."""
@@ -196,20 +228,25 @@ class FramePreparer:
         return verifier
 
     # ------------------------------------------------------------------ the path
-    def prepare(self, frame: Frame, features: Features | None = None) -> PreparedFrame:
+    def prepare(self, frame: Frame, features: FeaturesLike | None = None) -> PreparedFrame:
         """Features, semantic selection, BoW vector and direct index, 3D points of one frame.
 
         Args:
             frame: the frame.
-            features: the SLAM system's own features (in the order of ``frame.points3d``);
-                extracted here when None.
+            features: the SLAM system's own features (in the order of ``frame.points3d``):
+                Features or a ``(keypoints, descriptors)`` pair (see
+                :meth:`~stablecues.types.Features.coerce`); else ``frame.features``; extracted
+                here when both are None.
 
         Raises:
-            InputError: map points without the features they belong to, a frame without the
-                label image that ``semantic_source="labels"`` needs, or malformed 3D input.
+            InputError: map points without the features they belong to, features given both
+                here and in the frame, features that are not Features or a well-formed pair,
+                descriptors of another kind than the vocabulary's, a frame without the label
+                image that ``semantic_source="labels"`` needs, or malformed 3D input.
         """
         laps = _Laps()
         calib = self.calibration_of(frame)
+        features = self._given_features(frame, features)
         if features is None:
             if frame.points3d is not None:
                 raise InputError(f"frame {frame.index}: map points need the SLAM system's own "
@@ -222,7 +259,7 @@ class FramePreparer:
         weights = None
         if self.config.weighting is not None and len(features):
             seg = seg if seg is not None else self.segment(frame)
-            weights = feature_weights(features, seg, self.config.weighting)
+            weights = feature_weights(features, seg, self.config.weighting, self.domain_certainty())
             laps("segment")
         if weights is None:
             bow, fvec = self.vocabulary.transform(features.descriptors)
@@ -241,6 +278,27 @@ class FramePreparer:
         return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, source,
                              laps.timings, laps.start)
 
+    def _given_features(self, frame: Frame, features: FeaturesLike | None) -> Features | None:
+        """The SLAM system's features of a frame, as Features of the vocabulary's kind, or None."""
+        if features is not None and frame.features is not None and features is not frame.features:
+            raise InputError(f"frame {frame.index}: features given twice (in the Frame and to the "
+                             "detector): give them once")
+        given = features if features is not None else frame.features
+        if given is None:
+            return None
+        kind = self.vocabulary.descriptor_kind
+        if isinstance(given, Features):
+            out = given
+        else:
+            try:
+                out = Features.coerce(given, frame_image_size(frame), kind=kind)
+            except InputError as exc:
+                raise InputError(f"frame {frame.index} ({frame.name}): {exc}") from None
+        if out.descriptor_kind != kind:
+            raise InputError(f"frame {frame.index} ({frame.name}): the features have {out.descriptor_kind} "
+                             f"descriptors but the vocabulary holds {kind} words")
+        return out
+
     def _select(
         self, frame: Frame, features: Features, laps: _Laps
     ) -> tuple[Features, np.ndarray | None, bool, SegmentationResult | None]:
@@ -251,7 +309,7 @@ class FramePreparer:
             return features, None, False, None
         seg = self.segment(frame)
         laps("segment")
-        kept, report = select_features(features, seg, masking)
+        kept, report = select_features(features, seg, masking, self.domain_certainty())
         laps("mask")
         fallback = bool(report.fallback)
         return kept, (None if fallback else np.flatnonzero(report.passed)), fallback, seg
@@ -270,7 +328,14 @@ class FramePreparer:
             model = SegmentationModel.load()
             samples = self.config.segmentation_samples
             self._segmenter = lambda image: model.predict(image, samples)
-        return self._segmenter(frame.image)
+        seg = self._segmenter(frame.image)
+        self._certainties.append(seg.frame_certainty())
+        return seg
+
+    def domain_certainty(self) -> float | None:
+        """The median frame certainty of the last ``domain_window`` segmented frames (None
+        before the first): how sure the network is of this stream (``DetectorConfig.domain_window``)."""
+        return float(np.median(self._certainties)) if self._certainties else None
 
     def _lift(
         self, frame: Frame, features: Features, calib: Calibration | None

@@ -64,6 +64,21 @@ class SegmentationResult:
         """(width, height) of the frame."""
         return int(self.labels.shape[1]), int(self.labels.shape[0])
 
+    def frame_certainty(self) -> float:
+        """How sure the network is of this frame as a whole, in [0, 1]: the mean over the
+        output pixels of ``(max_c p_c - 1/C) / (1 - 1/C)`` (0 for flat posteriors, 1 for sure
+        ones). It tells frames of the network's domain from others: on CamVid drives the median
+        frame gives 0.86-0.87, on indoor sets (the corridor, TUM desk, Kinect) 0.72-0.77, on
+        KITTI and EuRoC 0.79-0.81 (``docs`` and ``semantics.weighting``). Labels handed in
+        (no posterior) count as certain: 1.
+        """
+        prob = self.prob
+        if prob.ndim != 3 or prob.shape[0] < 2 or prob.shape[1] < 2 or prob.shape[2] < 2:
+            return 1.0
+        c = prob.shape[0]
+        top = np.asarray(prob.max(axis=0), np.float64)
+        return float(np.clip((top.mean() - 1.0 / c) / (1.0 - 1.0 / c), 0.0, 1.0))
+
 
 def default_weights_path() -> Path:
     """Path of the ONNX weights shipped with the package."""
