@@ -73,3 +73,20 @@ def test_info_on_folder_and_bad_bag(tmp_path: Path, euroc: Euroc, capsys: pytest
     assert "\n" not in err
     assert main(["run", str(broken), "--out", str(tmp_path / "run")]) == 1
     assert "broken.bag: not a readable ROS bag" in capsys.readouterr().err
+
+
+def test_run_takes_the_bag_options(tmp_path: Path, euroc: Euroc, capsys: pytest.CaptureFixture[str]) -> None:
+    """run --topic/--mono/--stamps reach the bag reader as info's do."""
+    cams = stereo_cams(euroc)
+    few = [Cam(c.topic, c.stamps[:6], c.images[:6], c.info, c.info_topic) for c in cams]
+    bag = write_bag(tmp_path / "v101.bag", few, "ros1")
+    out_dir = tmp_path / "mono"
+    args = ["run", str(bag), "--out", str(out_dir), "--preset", "fast", "--no-progress",
+            "--topic", "/cam1/image_raw", "--mono", "--stamps", "bag"]
+    assert main(args) == 0
+    assert "6 frames" in capsys.readouterr().out
+    meta = json.loads((out_dir / "meta.json").read_text())
+    assert meta["topic"] == "/cam1/image_raw" and not meta["stereo"]
+    assert main(["run", str(bag), "--out", str(tmp_path / "bad"), "--topic", "/nope"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "/nope" in err and "\n" not in err

@@ -9,6 +9,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .options import FORMAT_HELP, add_rosbag_options, is_rosbag, rosbag_options
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -19,27 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "'stablecues run BAG' would use. For a dataset folder: its format, frames and files.",
     )
     p.add_argument("dataset", type=Path, help="ROS bag or dataset folder")
-    p.add_argument(
-        "--format",
-        default="auto",
-        help="auto | folder | tum | kitti | euroc | fabmap | vprbench | rosbag (default auto)",
-    )
-    p.add_argument("--topic", help="ROS bag: the image topic (left camera) instead of the one found")
-    p.add_argument("--right-topic", help="ROS bag: the right camera's image topic")
-    p.add_argument("--mono", action="store_true", help="ROS bag: left images only, no stereo pair")
-    p.add_argument(
-        "--stamps",
-        choices=("auto", "header", "bag"),
-        default="auto",
-        help="ROS bag: header stamps, bag time, or header stamps unless one is zero (default)",
-    )
-    p.add_argument(
-        "--max-stereo-difference",
-        type=float,
-        default=0.002,
-        metavar="S",
-        help="ROS bag: largest gap between a left and its right image, seconds (default 0.002)",
-    )
+    p.add_argument("--format", default="auto", help=FORMAT_HELP)
+    add_rosbag_options(p)
     p.add_argument("--json", type=Path, metavar="OUT", help="also write the summary as JSON")
     return p
 
@@ -124,18 +107,10 @@ def _print_folder(summary: dict[str, Any]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..datasets.rosbag import bag_summary, is_bag
+    from ..datasets.rosbag import bag_summary
 
-    bag = args.format == "rosbag" or (args.format == "auto" and is_bag(args.dataset))
-    if bag:
-        summary = bag_summary(
-            args.dataset,
-            topic=args.topic,
-            right_topic=args.right_topic,
-            stereo=not args.mono,
-            stamps=args.stamps,
-            max_stereo_difference=args.max_stereo_difference,
-        )
+    if is_rosbag(args):
+        summary = bag_summary(args.dataset, **rosbag_options(args))
         _print_bag(summary)
     else:
         summary = _folder_summary(args.dataset, args.format)

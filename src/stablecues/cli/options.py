@@ -94,3 +94,35 @@ def add_progress_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true",
                         help="do not draw the progress bar (for logs, CI and pipes; the summary is "
                              "still printed)")
+
+
+#: what --format takes (the dataset readers of stablecues.datasets)
+FORMAT_HELP = "auto | folder | tum | kitti | euroc | fabmap | vprbench | rosbag (default auto)"
+
+
+def add_rosbag_options(parser: argparse.ArgumentParser) -> None:
+    """--topic, --right-topic, --mono, --stamps, --max-stereo-difference (ROS bags only)."""
+    parser.add_argument("--topic", help="ROS bag: the image topic (left camera) instead of the one found")
+    parser.add_argument("--right-topic", help="ROS bag: the right camera's image topic")
+    parser.add_argument("--mono", action="store_true", help="ROS bag: left images only, no stereo pair")
+    parser.add_argument(
+        "--stamps", choices=("auto", "header", "bag"), default="auto",
+        help="ROS bag: header stamps, bag time, or header stamps unless one is zero (default)",
+    )
+    parser.add_argument(
+        "--max-stereo-difference", type=float, default=0.002, metavar="S",
+        help="ROS bag: largest gap between a left and its right image, seconds (default 0.002)",
+    )
+
+
+def rosbag_options(args: argparse.Namespace) -> dict[str, object]:
+    """The keyword arguments of the ROS-bag reader from :func:`add_rosbag_options`' options."""
+    return {"topic": args.topic, "right_topic": args.right_topic, "stereo": not args.mono,
+            "stamps": args.stamps, "max_stereo_difference": args.max_stereo_difference}
+
+
+def is_rosbag(args: argparse.Namespace) -> bool:
+    """Whether ``args.dataset`` is read as a ROS bag (``--format rosbag``, or auto and a bag)."""
+    from ..datasets.rosbag import is_bag
+
+    return bool(args.format == "rosbag" or (args.format == "auto" and is_bag(args.dataset)))

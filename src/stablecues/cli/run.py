@@ -9,10 +9,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .options import (
+    FORMAT_HELP,
     add_preset_option,
     add_progress_option,
+    add_rosbag_options,
     add_vocabulary_option,
+    is_rosbag,
     presets_epilog,
+    rosbag_options,
     vocabulary_from_args,
 )
 
@@ -29,9 +33,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "(decisions.csv, similarity matrix, timings, match pictures) for `stablecues eval`.",
         epilog=presets_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", type=Path, help="dataset folder")
-    p.add_argument("--format", default="auto",
-                   help="auto | folder | tum | kitti | euroc | fabmap | vprbench (default auto)")
+    p.add_argument("dataset", type=Path, help="dataset folder or ROS bag")
+    p.add_argument("--format", default="auto", help=FORMAT_HELP)
+    add_rosbag_options(p)
     add_preset_option(p)
     add_vocabulary_option(p)
     p.add_argument("--out", type=Path, required=True, help="run directory to write")
@@ -88,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one")
     config = preset(args.preset, parse_overrides(args.set))
     vocabulary = vocabulary_from_args(args)
-    dataset = open_dataset(args.dataset, format=args.format)
+    bag = rosbag_options(args) if is_rosbag(args) else {}
+    dataset = open_dataset(args.dataset, format=args.format, **bag)
     gt = args.gt if args.gt is not None else dataset.ground_truth_path()
     described = dataset.describe() if hasattr(dataset, "describe") else {}
     meta = {**described, "dataset": str(args.dataset), "format": getattr(dataset, "format", args.format),
