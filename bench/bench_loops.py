@@ -25,6 +25,10 @@ ablations) on:
   a DBoW2-style top-1 retrieval with its raw score swept (no normalisation, no islands, no
   temporal window, no geometry), and the loss funnel of each run (where the true loops were lost).
 
+* ``sift`` (not in the default sections; issue 14): SIFT with the shipped float vocabulary
+  against ORB with the shipped binary one, on the corridor and the two revisit sets, BoW stages
+  only: ``python bench/bench_loops.py --sections sift --out bench/results/sift.json``.
+
 Prints tables and writes ``bench/results/loops.json``. Runs in a few minutes on 2 cores.
 """
 
@@ -438,6 +442,71 @@ def bench_speed() -> dict[str, Any]:
     return out
 
 
+# ---------------------------------------------------------------------------------- SIFT vs ORB
+SIFT_SETS = ("corridor", "train_drives", "val_drive")
+
+
+def _run_with_vocabulary(ds: Any, gt: Any, cfg: Any, vocabulary: Any, score: str) -> dict[str, Any]:
+    """The detector over ``ds`` with a given vocabulary (``run_dataset`` takes the shipped ORB
+    one), scored as ``_run_eval`` scores a run: exact cell, no exclusion, accepted detections."""
+    det = LoopDetector(cfg, vocabulary=vocabulary)
+    queries, cands, scores, totals, features = [], [], [], [], []
+    for i in range(len(ds)):
+        d = det.process(ds[i])
+        queries.append(i)
+        cands.append(d.candidate_frame if d.accepted else -1)
+        value = d.confidence if score == "score" else d.raw_score
+        scores.append(value if d.candidate >= 0 else float("nan"))
+        totals.append(d.timings["total"])
+        features.append(d.n_features)
+    det.close()
+    ev = evaluate_detections(gt.matrix, np.array(queries), np.array(cands), np.array(scores),
+                             protocol="exact", query_mask=gt.query_mask)
+    return {"r_at_100p": round(ev.recall_at_100p, 4), "tp": ev.tp, "fp": ev.fp, "positives": ev.positives,
+            "tp_at_100p": ev.tp_at_100p, "ms_per_frame": round(float(np.mean(totals)), 2),
+            "features_per_frame": round(float(np.mean(features)), 1)}
+
+
+def bench_sift() -> dict[str, Any]:
+    """SIFT (the shipped float vocabulary) against ORB (the shipped binary one) on the corridor
+    and the CamVid revisit development sets: the BoW stages only (preset bow-nogeom, and the
+    DBoW2 top-1 raw-score sweep), as geometric verification matches binary descriptors only."""
+    from stablecues.vocabulary import default_vocabulary, default_vocabulary_path
+
+    dev = SHARED / "camvid_revisit_dev"
+    out: dict[str, Any] = {
+        "load_before": list(os.getloadavg()),
+        "vocabularies": {f: {"file": default_vocabulary_path(f).name, "words": default_vocabulary(f).n_words,
+                             "descriptors": str(default_vocabulary(f).descriptor_kind)}
+                         for f in ("orb", "sift")},
+        "protocol": "exact cell, no exclusion window (as the revisits section)",
+        "timing": "ms per frame of the whole detector (features, BoW, query), OpenCV threads as "
+                  "configured, a shared 2-core machine: see the load averages",
+    }
+    for set_name in SIFT_SETS:
+        if set_name == "corridor":
+            ds = open_dataset(SHARED / "corridor", format="vprbench")
+            gt = ds.ground_truth()
+        else:
+            ds = open_dataset(dev / set_name / "frames", format="folder")
+            gt = load_ground_truth(dev / set_name / "gt.png")
+        res: dict[str, Any] = {"frames": len(ds), "gt_file": str(gt.path)}
+        for features in ("orb", "sift"):
+            voc = default_vocabulary(features)
+            feats = {"features": {"name": features}}
+            for label, cfg, score in (
+                ("bow-nogeom", preset("bow-nogeom", {**feats, "similarity": False}), "score"),
+                ("dbow2 top-1, raw score swept", preset("bow-nogeom", {**TOP1, **feats}), "raw_score"),
+            ):
+                r = res[f"{features} {label}"] = _run_with_vocabulary(ds, gt, cfg, voc, score)
+                print(f"  {set_name:14s} {features:4s} {label:30s} R@100P {r['r_at_100p']:.3f} (TP {r['tp']} "
+                      f"FP {r['fp']} of {r['positives']}) {r['ms_per_frame']} ms/frame, "
+                      f"{r['features_per_frame']} features", flush=True)
+        out[set_name] = res
+    out["load_after"] = list(os.getloadavg())
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "loops.json")
@@ -475,6 +544,9 @@ def main() -> None:
     if "euroc" in sections:
         print("euroc/loop_pairs:", flush=True)
         results["euroc_pairs"] = bench_euroc(runnable)
+    if "sift" in sections:
+        print("SIFT vs ORB (shipped vocabularies), corridor and camvid revisits, exact cell:", flush=True)
+        results["sift"] = bench_sift()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
     print(f"written {args.out}")

@@ -148,7 +148,9 @@ def test_empty_descriptors_pass_through(small_voc: tuple[Vocabulary, list[np.nda
 
 def test_bad_inputs() -> None:
     with pytest.raises(InputError, match="descriptors"):
-        train_vocabulary([np.zeros((5, 16), np.uint8)], progress=False)
+        train_vocabulary([np.zeros((5, 16), np.int16)], progress=False)
+    with pytest.raises(InputError, match="one kind per vocabulary"):
+        train_vocabulary([np.zeros((5, 32), np.uint8), np.zeros((5, 16), np.uint8)], progress=False)
     with pytest.raises(InputError, match="at least one"):
         train_vocabulary([np.zeros((0, 32), np.uint8)], progress=False)
     voc = train_vocabulary([np.random.default_rng(0).integers(0, 256, (50, 32), dtype=np.uint8)],

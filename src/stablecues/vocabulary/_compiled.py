@@ -7,7 +7,11 @@ is read-only), so later processes load machine code instead of compiling it.
 
 The kernels compute exactly what the NumPy path computes (same greedy descent with ties to the
 lowest child, same summation order per word), so their results are identical to the last bit;
-``tests/vocabulary/test_vocab_engine.py`` checks it on real descriptors.
+``tests/vocabulary/test_vocab_engine.py`` checks it on real descriptors. Three descents:
+:func:`descend` for ORB's 4-word binary descriptors (unrolled, in groups), :func:`descend_words`
+for binary descriptors of any other width, :func:`descend_float` for float descriptors
+(squared Euclidean distance summed in float64 in index order, as the NumPy path sums it;
+``tests/vocabulary/test_vocab_float.py`` checks the two agree).
 """
 
 from __future__ import annotations
@@ -87,6 +91,63 @@ def descend(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.ndar
                 rows[g] = nxt
                 if nxt >= 0:
                     active += 1
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def descend_words(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.ndarray,
+                  row: np.ndarray, out: np.ndarray) -> None:
+    """:func:`descend` for binary descriptors of any width: ``q`` is (N, W) uint64 and
+    ``blocks`` (I, w * W) uint64, W words per descriptor (ORB's 4 words take :func:`descend`)."""
+    n, words = q.shape
+    for i in range(n):
+        node = 0
+        r = row[0]
+        while r >= 0:
+            best = _NO_CHILD
+            for c in range(counts[r]):
+                b = words * c
+                d = np.uint64(0)
+                for j in range(words):
+                    d += _popcount(q[i, j] ^ blocks[r, b + j])
+                best = min(best, (d << _SHIFT) | np.uint64(c))
+            node = kids[r, np.int64(best & _SLOT_MASK)]
+            r = row[node]
+        out[i] = node
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def descend_float(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.ndarray,
+                  row: np.ndarray, out: np.ndarray) -> None:
+    """Leaf reached by each float descriptor (greedy descent by Euclidean distance, ties to the
+    lowest child slot).
+
+    The squared distance is summed dimension by dimension in float64, in index order: the
+    NumPy path sums the same terms in the same order, so both choose the same children.
+
+    Args:
+        q: (N, D) float32 descriptors.
+        blocks: (I, w * D) float32 children's centres of each internal node, side by side.
+        kids, counts, row, out: as in :func:`descend`.
+    """
+    n, dim = q.shape
+    for i in range(n):
+        node = 0
+        r = row[0]
+        while r >= 0:
+            best = np.inf
+            slot = 0
+            for c in range(counts[r]):
+                b = dim * c
+                acc = 0.0
+                for j in range(dim):
+                    diff = np.float64(blocks[r, b + j]) - np.float64(q[i, j])
+                    acc += diff * diff
+                if acc < best:
+                    best = acc
+                    slot = c
+            node = kids[r, slot]
+            r = row[node]
+        out[i] = node
 
 
 @njit(cache=True, nogil=True, boundscheck=False)

@@ -4,9 +4,10 @@ Two engines compute the same thing, to the last bit:
 
 ``"compiled"``
     numba kernels (:mod:`stablecues.vocabulary._compiled`): the greedy descent a group of
-    descriptors at a time with hardware popcount, and the BoW vector and direct index in one
-    pass. numba is a dependency, so ``pip install -e .`` brings it. Machine code is cached on
-    disk: only the first process on a machine compiles (a few seconds); later ones load it on
+    descriptors at a time with hardware popcount (binary words; float words: Euclidean
+    distance summed in a fixed order), and the BoW vector and direct index in one pass.
+    numba is a dependency, so ``pip install -e .`` brings it. Machine code is cached on disk:
+    only the first process on a machine compiles (a few seconds); later ones load it on
     their first transform (numba's import plus the cache, about 0.4 s), or earlier with
     :meth:`Vocabulary.warm_up`.
 ``"numpy"``
@@ -71,6 +72,8 @@ def _warm(kernels: ModuleType) -> None:
     row = np.array([0, -1, -1], np.int32)
     out = np.empty(1, np.int32)
     kernels.descend(q, blocks, kids, counts, row, out)
+    kernels.descend_words(q, blocks, kids, counts, row, out)
+    kernels.descend_float(np.zeros((1, 2), np.float32), np.zeros((1, 4), np.float32), kids, counts, row, out)
     weight = np.array([0.0, 1.0, 1.0])
     word = np.array([-1, 0, 1], np.int32)
     table = np.arange(3, dtype=np.int32)

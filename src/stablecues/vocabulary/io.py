@@ -3,14 +3,20 @@
 Binary format (``.scv``, little-endian)::
 
     8 bytes   magic b"SCVOCAB\\0"
-    4 bytes   format version (uint32, currently 1)
+    4 bytes   format version (uint32): 1 for ORB's 32-byte binary words, 2 for any other kind
     4 bytes   header length H (uint32)
     H bytes   header, UTF-8 JSON: k, L, weighting, scoring, n_nodes, levels_up, fingerprint,
-              payload_crc32, and for each array its offset (from the payload start), dtype, shape
+              payload_crc32, for each array its offset (from the payload start), dtype, shape,
+              and (version 2) descriptor: {"kind": "binary" | "float", "size": B or D}
     padding   to a multiple of 64 bytes
-    payload   the arrays parents (n,) int32, descriptors (n, 32) uint8, weights (n,) float64,
-              children (n, w) int32 (w: the most children a node has, at most k), each
-              starting on a 64-byte boundary
+    payload   the arrays parents (n,) int32, descriptors (n, B) uint8 or (n, D) float32,
+              weights (n,) float64, children (n, w) int32 (w: the most children a node has,
+              at most k), each starting on a 64-byte boundary
+
+A version-1 file (every file written before float vocabularies existed, and every ORB file
+still) holds (n, 32) uint8 words and no descriptor field; ORB vocabularies are still written
+as version 1, so older readers keep reading them, while a float or other-width vocabulary is
+version 2, which an older reader refuses by its version instead of misreading it.
 
 Loading reads the file once (or memory-maps it), checks its length and CRC-32, then every
 header field (types, ranges, each array's dtype, shape and place inside the payload) before
@@ -37,13 +43,16 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import VocabularyError
+from ..errors import InputError, VocabularyError
+from ..types import ORB_DESCRIPTOR, DescriptorKind
 from .scoring import Scoring, Weighting
 from .textformat import read_text, write_text
 from .tree import Vocabulary, check_header
 
 MAGIC = b"SCVOCAB\0"
 VERSION = 1
+VERSION_ANY_DESCRIPTOR = 2
+_VERSIONS = (VERSION, VERSION_ANY_DESCRIPTOR)
 _ALIGN = 64
 _PREFIX = struct.Struct("<8sII")
 _DENSE_CHILDREN = 1 << 26  # entries of the children table written out at most
@@ -83,9 +92,10 @@ def _children_to_store(voc: Vocabulary) -> np.ndarray:
 
 
 def _save_binary(voc: Vocabulary, path: Path) -> None:
+    kind = voc.descriptor_kind
     arrays = {
         "parents": voc.parents.astype("<i4"),
-        "descriptors": voc.descriptors.astype(np.uint8),
+        "descriptors": voc.descriptors.astype(_DESCRIPTOR_DTYPES[kind.kind]),
         "weights": voc.weights.astype("<f8"),
         "children": _children_to_store(voc),
     }
@@ -103,9 +113,13 @@ def _save_binary(voc: Vocabulary, path: Path) -> None:
         "n_nodes": voc.n_nodes, "levels_up": voc.levels_up, "fingerprint": voc.fingerprint,
         "payload_bytes": offset, "payload_crc32": crc, "arrays": layout,
     }
+    version = VERSION
+    if kind != ORB_DESCRIPTOR:
+        header["descriptor"] = {"kind": kind.kind, "size": kind.size}
+        version = VERSION_ANY_DESCRIPTOR
     hbytes = json.dumps(header, sort_keys=True).encode()
     with open(path, "wb") as f:
-        f.write(_PREFIX.pack(MAGIC, VERSION, len(hbytes)))
+        f.write(_PREFIX.pack(MAGIC, version, len(hbytes)))
         f.write(hbytes)
         f.write(b"\0" * _pad(_PREFIX.size + len(hbytes)))
         for arr in arrays.values():
@@ -140,10 +154,16 @@ def load_vocabulary(path: str | Path, levels_up: int | None = None, mmap: bool =
 
 _ARRAYS = {  # name: (dtype, shape after n_nodes, None: the children table's width)
     "parents": ("<i4", ()),
-    "descriptors": ("|u1", (32,)),
+    "descriptors": ("|u1", (32,)),  # a version-2 file's descriptor field decides (see _layout)
     "weights": ("<f8", ()),
     "children": ("<i4", (None,)),
 }
+_DESCRIPTOR_DTYPES = {"binary": "|u1", "float": "<f4"}
+
+
+def _layout(kind: DescriptorKind) -> dict[str, tuple[str, tuple[int | None, ...]]]:
+    """The arrays a file of words of ``kind`` holds."""
+    return {**_ARRAYS, "descriptors": (_DESCRIPTOR_DTYPES[kind.kind], (kind.size,))}
 
 
 def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
@@ -151,11 +171,14 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
     if raw.size < _PREFIX.size:
         raise VocabularyError(f"{path}: truncated vocabulary file (no header)")
     _, version, hlen = _PREFIX.unpack(raw[: _PREFIX.size].tobytes())
-    if version != VERSION:
-        raise VocabularyError(f"{path}: vocabulary format version {version}, expected {VERSION}")
+    if version not in _VERSIONS:
+        raise VocabularyError(
+            f"{path}: vocabulary format version {version}, expected {' or '.join(map(str, _VERSIONS))}"
+        )
     if raw.size < _PREFIX.size + hlen:
         raise VocabularyError(f"{path}: truncated vocabulary file (header cut short)")
     header = _binary_header(path, raw[_PREFIX.size : _PREFIX.size + hlen].tobytes())
+    layout = _layout(_descriptor_kind(path, header, version))
     start = _PREFIX.size + hlen + _pad(_PREFIX.size + hlen)
     size = header["payload_bytes"]
     if raw.size < start + size:
@@ -165,7 +188,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
     payload = raw[start : start + size]
     if zlib.crc32(np.ascontiguousarray(payload).data) != header.get("payload_crc32"):
         raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
-    arrays = {name: _binary_array(path, payload, header, name) for name in _ARRAYS}
+    arrays = {name: _binary_array(path, payload, header, name, layout[name]) for name in layout}
     up = header["levels_up"] if levels_up is None else levels_up
     try:
         return Vocabulary(
@@ -211,9 +234,30 @@ def _binary_header(path: Path, text: bytes) -> dict[str, Any]:
     return header
 
 
-def _binary_array(path: Path, payload: np.ndarray, header: dict[str, Any], name: str) -> np.ndarray:
+def _descriptor_kind(path: Path, header: dict[str, Any], version: int) -> DescriptorKind:
+    """The words' kind: ORB's for version 1, the header's descriptor field for version 2."""
+    if version == VERSION:
+        return ORB_DESCRIPTOR
+    spec = header.get("descriptor")
+    kind = spec.get("kind") if isinstance(spec, dict) else None
+    size = spec.get("size") if isinstance(spec, dict) else None
+    if kind not in _DESCRIPTOR_DTYPES or not isinstance(size, int) or isinstance(size, bool) or size < 1:
+        raise VocabularyError(
+            f"{path}: corrupt vocabulary header: descriptor must be {{'kind': 'binary' or 'float', "
+            f"'size': integer >= 1}}, got {_short(spec)}"
+        )
+    try:
+        return DescriptorKind(kind, size)
+    except InputError as exc:  # pragma: no cover - the checks above cover DescriptorKind's
+        raise VocabularyError(f"{path}: corrupt vocabulary header: {exc}") from None
+
+
+def _binary_array(
+    path: Path, payload: np.ndarray, header: dict[str, Any], name: str,
+    spec_want: tuple[str, tuple[int | None, ...]],
+) -> np.ndarray:
     """One array of the payload, as a view, after checking its dtype, shape and place."""
-    dtype, tail = _ARRAYS[name]
+    dtype, tail = spec_want
     spec = header["arrays"].get(name)
     n = header["n_nodes"]
     try:

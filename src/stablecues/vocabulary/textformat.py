@@ -12,6 +12,10 @@ exactly (Clinger's fast path, ``float()`` for the rest). Every allocation is siz
 nothing before it is refused. Lines must hold 35 numbers and be at most 4096 bytes; blank
 lines are skipped.
 
+Only 32-byte binary (ORB) vocabularies have a text form: writing a float or other-width one is
+refused with one line (DBoW3 and others write float rows, but ORB-SLAM reads 32 byte columns,
+and an own-format file serves every other reader of this package).
+
 Writing leaves out the final newline. ORB-SLAM's loader (``loadFromTextFile``) reads lines with
 ``getline`` until ``eof()``: after a final newline one more, empty, line is read and becomes a
 phantom node with an uninitialised parent and descriptor (96,619 words for a 96,618-word file).
@@ -27,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VocabularyError
+from ..types import ORB_DESCRIPTOR
 from .scoring import Scoring, Weighting
 from .tree import Vocabulary, check_header
 
@@ -53,7 +58,19 @@ def _count_error(path: Path, line: int, count: int, last: bool) -> VocabularyErr
 
 
 def write_text(voc: Vocabulary, path: Path) -> None:
-    """Write ``voc`` in ORB-SLAM's text layout, with no final newline (see the module doc)."""
+    """Write ``voc`` in ORB-SLAM's text layout, with no final newline (see the module doc).
+
+    Raises:
+        VocabularyError: ``voc`` is not made of 32-byte binary words. The format has exactly
+            32 byte columns and ORB-SLAM reads nothing else; float (e.g. SIFT) vocabularies and
+            binary ones of other widths are saved in the own binary format (``.scv``) only.
+    """
+    if voc.descriptor_kind != ORB_DESCRIPTOR:
+        target = path.with_name(path.name.removesuffix(".part"))
+        raise VocabularyError(
+            f"{target}: the DBoW2/ORB-SLAM text format holds {ORB_DESCRIPTOR} words only, this "
+            f"vocabulary's are {voc.descriptor_kind}: save it as .scv"
+        )
     desc = voc.descriptors.tolist()
     parents = voc.parents.tolist()
     leaf = voc.is_leaf.astype(np.int8).tolist()

@@ -1,100 +1,72 @@
-"""Training a vocabulary: hierarchical k-majority clustering of binary descriptors.
+"""Training a vocabulary: hierarchical clustering of binary or float descriptors.
 
 As DBoW2's ``TemplatedVocabulary::create``: the descriptors are split into k clusters with
-k-means++ seeding, Hamming distance and bitwise-majority centres; every cluster with more
-than one descriptor is split again, down to L levels. A node with at most k descriptors gets
-one child per descriptor. Words are the leaves; their IDF weight is ``log(N / N_i)`` over the
-training images (N images, N_i of them containing the word). Seeded and deterministic.
+k-means++ seeding, every cluster with more than one descriptor is split again, down to L
+levels; a node with at most k descriptors gets one child per descriptor. Binary descriptors
+(uint8, any byte width) are clustered with Hamming distance and bitwise-majority centres
+(k-majority), float descriptors (float32) with squared Euclidean distance and mean centres
+(Lloyd's k-means). Words are the leaves; their IDF weight is ``log(N / N_i)`` over the
+training images (N images, N_i of them containing the word).
+
+Seeded and deterministic per subtree: the clustering of a node draws from its own random
+stream, ``SeedSequence(seed, spawn_key=path)`` with ``path`` the child slots from the root to
+the node, and sees exactly the descriptors under it, in their input order. A subtree is
+therefore the same whether it is grown in this process, in any order, or as a task on another
+machine (:mod:`.distributed`); node ids are given at the end, breadth first (by depth, then by
+path), as DBoW2 numbers them.
+
+Float distances are reproducible to the bit wherever they run: a matrix product (BLAS, whose
+rounding depends on its thread count) only ranks the centres, and any descriptor whose two
+nearest centres are closer than its rounding bound is decided again by a sum in a fixed order.
 """
 
 from __future__ import annotations
 
 import logging
-from collections import deque
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
 
 from ..errors import InputError
-from .descriptors import as_words, check_descriptors, hamming_cross, majority_by_label
+from ..types import DescriptorKind
+from .clustering import (  # noqa: F401 (the tree-growing pieces, importable from here as before)
+    Nodes,
+    assemble_tree,
+    expand,
+    grow_subtree,
+    nearest_centre,
+    squared_l2_exact,
+)
+from .descriptors import check_descriptors
 from .scoring import Scoring, Weighting
 from .tree import Vocabulary
 
+if TYPE_CHECKING:
+    from distributed import Client
+
 log = logging.getLogger(__name__)
 
-_CHUNK = 65_536
+def check_training_sets(descriptor_sets: Sequence[np.ndarray]) -> DescriptorKind:
+    """The descriptor kind all training images share.
 
-
-def _nearest(words: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of and distance to the nearest centre for every descriptor, in chunks."""
-    n = words.shape[0]
-    label = np.empty(n, np.int64)
-    dist = np.empty(n, np.int32)
-    for s in range(0, n, _CHUNK):
-        d = hamming_cross(words[s : s + _CHUNK], centres)
-        label[s : s + _CHUNK] = d.argmin(axis=1)
-        dist[s : s + _CHUNK] = d[np.arange(d.shape[0]), label[s : s + _CHUNK]]
-    return label, dist
-
-
-def kmeans_plus_plus(words: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """k-means++ seeds (Hamming distance, probability proportional to squared distance).
-
-    Args:
-        words: (N, 4) uint64 descriptors, N > k.
-        k: wanted number of seeds.
-        rng: random generator.
-
-    Returns:
-        (m,) int64 indices of the seeds, m <= k (fewer when the set has fewer distinct points).
+    Raises:
+        InputError: an image whose descriptors are not (N, D) uint8 or float32, kinds that
+            differ between images, NaN or infinite float values, no descriptor at all.
     """
-    n = words.shape[0]
-    seeds = [int(rng.integers(n))]
-    d = hamming_cross(words, words[seeds[-1] : seeds[-1] + 1])[:, 0].astype(np.float64)
-    while len(seeds) < k:
-        p = d * d
-        total = p.sum()
-        if total <= 0:
-            break
-        nxt = int(np.searchsorted(np.cumsum(p), rng.random() * total, side="right"))
-        nxt = min(nxt, n - 1)
-        seeds.append(nxt)
-        d = np.minimum(d, hamming_cross(words, words[nxt : nxt + 1])[:, 0])
-    return np.array(seeds, np.int64)
-
-
-def kmajority(
-    descriptors: np.ndarray, k: int, rng: np.random.Generator, max_iter: int = 15
-) -> tuple[np.ndarray, np.ndarray]:
-    """Cluster binary descriptors into at most k groups (k-means++ seeds, majority centres).
-
-    Args:
-        descriptors: (N, 32) uint8, N > k.
-        k: number of clusters.
-        rng: random generator.
-        max_iter: iteration limit (stops earlier when assignments no longer change).
-
-    Returns:
-        centres (m, 32) uint8 and labels (N,) int64 in [0, m), m <= k, no empty cluster.
-    """
-    words = as_words(descriptors)
-    seeds = kmeans_plus_plus(words, k, rng)
-    centres = descriptors[seeds].copy()
-    labels = np.full(descriptors.shape[0], -1, np.int64)
-    for _ in range(max_iter):
-        new, _ = _nearest(words, as_words(centres))
-        if np.array_equal(new, labels):
-            break
-        labels = new
-        m = centres.shape[0]
-        new_centres, sizes = majority_by_label(descriptors, labels, m)
-        # an emptied cluster keeps its previous centre
-        centres = np.where((sizes > 0)[:, None], new_centres, centres)
-    used = np.unique(labels)
-    remap = np.full(centres.shape[0], -1, np.int64)
-    remap[used] = np.arange(used.size)
-    return centres[used], remap[labels]
+    kind: DescriptorKind | None = None
+    for i, d in enumerate(descriptor_sets):
+        name = f"descriptors of training image {i}"
+        got = DescriptorKind.of(d, name)
+        if kind is None:
+            kind = got
+        elif got != kind:
+            raise InputError(f"{name}: {got}, but the images before are {kind}: one kind per vocabulary")
+        check_descriptors(d, name, kind)
+    if kind is None or sum(d.shape[0] for d in descriptor_sets) == 0:
+        raise InputError("vocabulary training needs at least one descriptor")
+    return kind
 
 
 def train_vocabulary(
@@ -107,70 +79,62 @@ def train_vocabulary(
     max_iter: int = 15,
     levels_up: int | None = None,
     progress: bool = True,
+    client: Client | None = None,
 ) -> Vocabulary:
     """Train a vocabulary tree from the descriptors of a set of training images.
 
     Args:
-        descriptor_sets: one (N_i, 32) uint8 array per training image.
+        descriptor_sets: one array per training image, all of one kind: (N_i, B) uint8 binary
+            descriptors (ORB's B = 32, or any width) or (N_i, D) float32 ones (SIFT's D = 128,
+            or a learned model's).
         k: branching factor (>= 2).
         levels: depth L (>= 1).
         weighting: word weighting.
         scoring: scoring the vocabulary's BoW vectors are normalised for.
-        seed: random seed; the same inputs and seed give the same tree.
-        max_iter: k-majority iterations per node.
+        seed: random seed; the same inputs and seed give the same tree, serial or distributed.
+        max_iter: clustering iterations per node.
         levels_up: default direct-index level of the returned vocabulary (None: L - 2).
         progress: show a progress bar.
+        client: a ``dask.distributed`` client: the subtrees under the root's children are
+            clustered as tasks on its workers (:mod:`.distributed`); the vocabulary is the
+            one a serial run makes.
 
     Returns:
-        The trained vocabulary.
+        The trained vocabulary, of the descriptors' kind.
+
+    Raises:
+        InputError: k < 2 or L < 1, malformed or mixed descriptors, no descriptor at all.
     """
     if k < 2 or levels < 1:
         raise InputError(f"vocabulary training needs k >= 2 and L >= 1, got k={k}, L={levels}")
-    for i, d in enumerate(descriptor_sets):
-        check_descriptors(d, f"descriptors of training image {i}")
-    sets = [d for d in descriptor_sets]
-    if not sets or sum(d.shape[0] for d in sets) == 0:
-        raise InputError("vocabulary training needs at least one descriptor")
+    kind = check_training_sets(descriptor_sets)
+    sets = list(descriptor_sets)
     data = np.ascontiguousarray(np.concatenate(sets, axis=0))
-    rng = np.random.default_rng(seed)
-    parents: list[int] = [-1]
-    centres: list[np.ndarray] = [np.zeros(32, np.uint8)]
-    queue: deque[tuple[int, np.ndarray, int]] = deque([(0, np.arange(data.shape[0]), 0)])
-    bar = tqdm(total=data.shape[0] * levels, desc="vocabulary", unit="desc", disable=not progress,
-               leave=False)
-    while queue:
-        node, idx, level = queue.popleft()
-        bar.update(idx.size)
-        if idx.size <= k:
-            groups_c = data[idx]
-            groups = [idx[i : i + 1] for i in range(idx.size)]
-        else:
-            groups_c, labels = kmajority(data[idx], k, rng, max_iter)
-            order = np.argsort(labels, kind="stable")
-            cuts = np.searchsorted(labels[order], np.arange(1, groups_c.shape[0]))
-            groups = np.split(idx[order], cuts)
-        for c, members in zip(groups_c, groups, strict=True):
-            child = len(parents)
-            parents.append(node)
-            centres.append(c)
-            if level + 1 < levels and members.size > 1:
-                queue.append((child, members, level + 1))
-    bar.close()
-    n = len(parents)
-    voc = Vocabulary(
-        k, levels, np.array(parents, np.int32), np.stack(centres).astype(np.uint8),
-        np.zeros(n, np.float64), weighting, scoring, levels_up,
-    )
-    weights = np.zeros(n, np.float64)
-    if weighting in (Weighting.TF_IDF, Weighting.IDF):
-        n_images = len(sets)
+    if client is not None:
+        from .distributed import grow_tree_distributed
+
+        nodes = grow_tree_distributed(client, data, k, levels, seed, max_iter)
+    else:
+        with tqdm(total=data.shape[0] * levels, desc="vocabulary", unit="desc", disable=not progress,
+                  leave=False) as bar:
+            nodes = grow_subtree(data, (), 0, k, levels, seed, max_iter, bar)
+    parents, centres = assemble_tree(nodes, kind.size, kind.dtype)
+    return weigh_vocabulary(Vocabulary(k, levels, parents, centres, np.zeros(parents.size), weighting,
+                                       scoring, levels_up), sets)
+
+
+def weigh_vocabulary(voc: Vocabulary, sets: Sequence[np.ndarray]) -> Vocabulary:
+    """``voc`` with its word weights set from the training images: IDF ``log(N / N_i)`` for
+    TF-IDF and IDF weighting, 1 for TF and binary."""
+    weights = np.zeros(voc.n_nodes, np.float64)
+    if voc.weighting in (Weighting.TF_IDF, Weighting.IDF):
         counts = np.zeros(voc.n_words, np.int64)
         for d in sets:
             if d.shape[0]:
                 counts[np.unique(voc.node_word[voc.leaves_of(d)])] += 1
-        idf = np.log(n_images / np.maximum(counts, 1))
-        weights[voc.word_nodes] = idf
+        weights[voc.word_nodes] = np.log(len(sets) / np.maximum(counts, 1))
     else:
         weights[voc.word_nodes] = 1.0
-    log.info("trained vocabulary: %d nodes, %d words", n, voc.n_words)
-    return Vocabulary(k, levels, voc.parents, voc.descriptors, weights, weighting, scoring, levels_up)
+    log.info("trained vocabulary: %d nodes, %d words", voc.n_nodes, voc.n_words)
+    return Vocabulary(voc.k, voc.levels, voc.parents, voc.descriptors, weights, voc.weighting,
+                      voc.scoring, voc.levels_up)

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..errors import InputError, VocabularyError
-from ..types import DESCRIPTOR_BYTES, BowVector, DescriptorKind, FeatureVector
+from ..types import ORB_DESCRIPTOR, BowVector, DescriptorKind, FeatureVector
 from . import engine as _engine
-from .descriptors import as_words, check_descriptors
+from .descriptors import as_words, check_descriptors, n_words
 from .scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
 
 #: Largest branching factor a vocabulary may declare (a flat vocabulary of 2^20 words; DBoW2's
@@ -40,18 +41,24 @@ class VocabularyInfo:
 
 
 class Vocabulary:
-    """A DBoW2-style hierarchical vocabulary of binary words.
+    """A DBoW2-style hierarchical vocabulary of binary or float words.
 
-    Node 0 is the root. Every other node has a parent, a 256-bit centre and, for leaves (words),
-    a weight (the IDF for TF-IDF and IDF weighting, 1 otherwise). A parent's id is always lower
+    Node 0 is the root. Every other node has a parent, a centre and, for leaves (words), a
+    weight (the IDF for TF-IDF and IDF weighting, 1 otherwise). A parent's id is always lower
     than its children's, as in DBoW2's files. Leaves may sit at any depth up to ``levels``.
+
+    The centres' dtype decides the descriptor kind (:attr:`descriptor_kind`): uint8 centres of
+    B bytes are binary words compared by Hamming distance (B = 32 for ORB, any B >= 1 works),
+    float32 centres of D dimensions are float words compared by Euclidean distance (D = 128
+    for SIFT). Weighting, scoring, the direct index and the files are the same for both.
 
     Args:
         k: branching factor, 2 <= k <= :data:`MAX_K`.
         levels: depth L of the tree (the root is level 0, leaves at most at level L),
             1 <= L <= :data:`MAX_LEVELS`.
         parents: (n,) integer parent of each node (-1 for the root).
-        descriptors: (n, 32) uint8 node centres (the root's is ignored).
+        descriptors: (n, B) uint8 binary or (n, D) float32 (finite) node centres (the root's
+            is ignored).
         weights: (n,) finite float node weights (used for leaves; <= 0 stops a word).
         weighting: how BoW weights are made.
         scoring: how BoW vectors are compared (decides their normalisation).
@@ -86,6 +93,7 @@ class Vocabulary:
         self.k = int(k)
         self.levels = int(levels)
         self.parents, self.descriptors, self.weights = _check_arrays(parents, descriptors, weights)
+        self._kind: DescriptorKind | None = None
         self.weighting = Weighting(weighting)
         self.scoring = Scoring(scoring)
         n = self.n_nodes
@@ -116,13 +124,20 @@ class Vocabulary:
         """
         self._row = np.full(self.n_nodes, -1, np.int32)  # row of each inner node, -1: a leaf
         self._row[inner] = np.arange(inner.size, dtype=np.int32)
-        words = as_words(self.descriptors)
-        blocks = words[np.where(kids >= 0, kids, 0)]  # (I, w, 4)
-        self._blocks = np.ascontiguousarray(blocks.reshape(inner.size, kids.shape[1] * 4))
+        # binary: (n, W) uint64 words; float: (n, D) float32 as they are
+        cells = self.descriptors if self.is_float else as_words(self.descriptors)
+        blocks = cells[np.where(kids >= 0, kids, 0)]  # (I, w, W or D)
+        self._blocks = np.ascontiguousarray(blocks.reshape(inner.size, kids.shape[1] * cells.shape[1]))
         self._block_kids = kids
         self._block_counts = (kids >= 0).sum(axis=1, dtype=np.int32)
         missing = kids < 0
-        self._penalty = (np.where(missing, 1024, 0).astype(np.uint32) if missing.any() else None)
+        self._penalty: np.ndarray | None = None
+        if missing.any():  # a padded slot is never the nearest child
+            if self.is_float:
+                self._penalty = np.where(missing, np.inf, 0.0)
+            else:
+                far = max(1024, 64 * cells.shape[1] + 1)
+                self._penalty = np.where(missing, far, 0).astype(np.uint32)
 
     def _same_children(self, given: np.ndarray) -> bool:
         """Whether ``given`` is this tree's (n, w') children table (w' >= w, -1 padded), or an
@@ -169,10 +184,13 @@ class Vocabulary:
 
     @property
     def fingerprint(self) -> str:
-        """SHA-256 over k, L, weighting, scoring and the node arrays (hex)."""
+        """SHA-256 over k, L, weighting, scoring, the descriptor kind (when not ORB's, so that
+        ORB vocabularies keep their fingerprints) and the node arrays (hex)."""
         if self._fingerprint is None:
             h = hashlib.sha256()
             h.update(f"{self.k} {self.levels} {int(self.weighting)} {int(self.scoring)}".encode())
+            if self.descriptor_kind != ORB_DESCRIPTOR:
+                h.update(f" {self.descriptor_kind.kind} {self.descriptor_kind.size}".encode())
             for arr in (self.parents, self.descriptors, self.weights):
                 h.update(np.ascontiguousarray(arr).tobytes())
             self._fingerprint = h.hexdigest()
@@ -180,8 +198,17 @@ class Vocabulary:
 
     @property
     def descriptor_kind(self) -> DescriptorKind:
-        """What the words are made of: binary, 32 bytes (ORB's descriptors)."""
-        return DescriptorKind("binary", int(self.descriptors.shape[1]))
+        """What the words are made of: binary with their byte width (32: ORB's descriptors) or
+        float with their dimension (128: SIFT's)."""
+        if self._kind is None:
+            size = int(self.descriptors.shape[1])
+            self._kind = DescriptorKind("float", size) if self.is_float else DescriptorKind("binary", size)
+        return self._kind
+
+    @property
+    def is_float(self) -> bool:
+        """Whether the words are float vectors (Euclidean distance) rather than binary ones."""
+        return bool(self.descriptors.dtype == np.float32)
 
     @property
     def engine(self) -> str:
@@ -232,49 +259,91 @@ class Vocabulary:
     def leaves_of(self, descriptors: np.ndarray) -> np.ndarray:
         """Descend the tree: the leaf node each descriptor reaches.
 
-        At each level a descriptor moves to the child with the nearest centre (Hamming), as
-        DBoW2 does; ties go to the lowest child id.
+        At each level a descriptor moves to the child with the nearest centre (Hamming for
+        binary words, Euclidean for float ones), as DBoW2 does; ties go to the lowest child id.
 
         Args:
-            descriptors: (N, 32) uint8.
+            descriptors: (N, B) uint8 or (N, D) float32, of the vocabulary's kind.
 
         Returns:
             (N,) int32 leaf node ids.
 
         Raises:
-            InputError: descriptors that are not (N, 32) uint8; descriptors of another kind
-                (float, or binary of another width) are named as such.
+            InputError: descriptors of another kind than the words (float for binary words,
+                binary of another width, ...) are named as such; other malformed arrays,
+                NaN or infinite float descriptors.
         """
         self._check_kind(descriptors)
-        check_descriptors(descriptors)
+        check_descriptors(descriptors, kind=self.descriptor_kind)
         n = descriptors.shape[0]
         if n == 0 or self.n_nodes == 1:
             return np.zeros(n, np.int32)
+        q = self._query(descriptors)
         if self.engine == "compiled":
             out = np.empty(n, np.int32)
-            kernels = _engine.compiled_kernels()
-            assert kernels is not None  # resolved to "compiled" only when they load
-            q = as_words(descriptors)
-            q = q if q.flags.writeable else q.copy()  # one compiled signature: writable arrays
-            kernels.descend(q, self._blocks, self._block_kids, self._block_counts, self._row, out)
+            self._descend_kernel()(q, self._blocks, self._block_kids, self._block_counts, self._row, out)
             return out
-        return self._leaves_numpy(as_words(descriptors))
+        return self._leaves_numpy_float(q) if self.is_float else self._leaves_numpy(q)
+
+    def _query(self, descriptors: np.ndarray) -> np.ndarray:
+        """Descriptors as the search tables hold them: (N, W) uint64 words or (N, D) float32,
+        contiguous and writable (the compiled kernels have one signature: writable arrays)."""
+        q = (np.ascontiguousarray(descriptors, np.float32) if self.is_float
+             else as_words(descriptors))
+        return q if q.flags.writeable else q.copy()
+
+    def _descend_kernel(self) -> Any:
+        """The compiled descent for this vocabulary's words (see :mod:`._compiled`)."""
+        kernels = _engine.compiled_kernels()
+        assert kernels is not None  # resolved to "compiled" only when they load
+        if self.is_float:
+            return kernels.descend_float
+        return kernels.descend if n_words(self.descriptors.shape[1]) == 4 else kernels.descend_words
 
     def _leaves_numpy(self, q: np.ndarray) -> np.ndarray:
-        """The NumPy descent: all descriptors a level at a time. ``q``: (N, 4) uint64."""
-        n = q.shape[0]
+        """The NumPy descent: all descriptors a level at a time. ``q``: (N, W) uint64."""
+        n, words = q.shape
         cur = np.zeros(n, np.int32)
         k = self._block_kids.shape[1]
         active = np.arange(n)
         while active.size:
             rows = self._row[cur[active]]
-            x = np.take(self._blocks, rows, axis=0)  # (M, k*4) child centres
+            x = np.take(self._blocks, rows, axis=0)  # (M, k*W) child centres
             np.bitwise_xor(x, np.tile(q[active], (1, k)), out=x)
-            counts = np.bitwise_count(x).view(np.uint32)  # 4 byte-counts per uint32
-            # sum the four bytes of each uint32 into its top byte (each <= 64, so no carry);
-            # a sum of exactly 256 wraps to 0: that is the all-bits-differ pattern 0x40404040
-            d = (counts * np.uint32(0x01010101)) >> np.uint32(24)
-            d[counts == 0x40404040] = 256
+            if words == 4:
+                counts = np.bitwise_count(x).view(np.uint32)  # 4 byte-counts per uint32
+                # sum the four bytes of each uint32 into its top byte (each <= 64, so no carry);
+                # a sum of exactly 256 wraps to 0: that is the all-bits-differ pattern 0x40404040
+                d = (counts * np.uint32(0x01010101)) >> np.uint32(24)
+                d[counts == 0x40404040] = 256
+            else:
+                d = np.bitwise_count(x).reshape(rows.size, k, words).sum(axis=2, dtype=np.uint32)
+            if self._penalty is not None:
+                d += self._penalty[rows]
+            best = self._block_kids[rows, d.argmin(axis=1)]
+            cur[active] = best
+            active = active[~self.is_leaf[best]]
+        return cur
+
+    def _leaves_numpy_float(self, q: np.ndarray) -> np.ndarray:
+        """The NumPy descent of float descriptors: all a level at a time. ``q``: (N, D) float32.
+
+        Squared distances are summed dimension by dimension in float64, in the order the
+        compiled kernel sums them, so both engines choose the same children to the last bit.
+        """
+        n, dim = q.shape
+        cur = np.zeros(n, np.int32)
+        k = self._block_kids.shape[1]
+        active = np.arange(n)
+        while active.size:
+            rows = self._row[cur[active]]
+            x = np.take(self._blocks, rows, axis=0).reshape(rows.size, k, dim)
+            xt = np.ascontiguousarray(x.transpose(2, 0, 1), np.float64)  # (D, M, k)
+            qt = np.ascontiguousarray(q[active].T, np.float64)[:, :, None]  # (D, M, 1)
+            d = np.zeros((rows.size, k))
+            for j in range(dim):
+                diff = xt[j] - qt[j]
+                d += diff * diff
             if self._penalty is not None:
                 d += self._penalty[rows]
             best = self._block_kids[rows, d.argmin(axis=1)]
@@ -352,7 +421,7 @@ class Vocabulary:
         ``weights`` (None) the result is DBoW2's, exactly; all-ones weights give the same.
 
         Args:
-            descriptors: (N, 32) uint8.
+            descriptors: (N, B) uint8 or (N, D) float32, of the vocabulary's kind.
             levels_up: direct-index level above the leaves (>= 0; default: ``self.levels_up``).
             weights: (N,) finite floats >= 0, one per descriptor, or None.
 
@@ -366,7 +435,7 @@ class Vocabulary:
         """
         up = self._levels_up(levels_up)
         self._check_kind(descriptors)
-        check_descriptors(descriptors)
+        check_descriptors(descriptors, kind=self.descriptor_kind)
         n = descriptors.shape[0]
         fw = _feature_weights(weights, n)
         if n == 0:
@@ -374,13 +443,17 @@ class Vocabulary:
         if self.engine == "compiled" and self.n_nodes > 1:
             kernels = _engine.compiled_kernels()
             assert kernels is not None  # resolved to "compiled" only when they load
-            q = as_words(descriptors)
-            words, values, nodes = kernels.transform(
-                q if q.flags.writeable else q.copy(), self._blocks, self._block_kids,
-                self._block_counts, self._row, self.weights,
-                self.node_word, self.direct_index_table(up),
-                fw if fw is not None else np.empty(0), fw is not None, self._adds_features,
-            )
+            q = self._query(descriptors)
+            args = (self.weights, self.node_word, self.direct_index_table(up),
+                    fw if fw is not None else np.empty(0), fw is not None, self._adds_features)
+            descend = self._descend_kernel()
+            if descend is kernels.descend:  # ORB's 4 words: descent and assembly in one call
+                words, values, nodes = kernels.transform(
+                    q, self._blocks, self._block_kids, self._block_counts, self._row, *args)
+            else:
+                leaves = np.empty(n, np.int32)
+                descend(q, self._blocks, self._block_kids, self._block_counts, self._row, leaves)
+                words, values, nodes = kernels.assemble(leaves, *args)
         else:
             leaves = self.leaves_of(descriptors) if self.n_nodes > 1 else np.zeros(n, np.int32)
             words, values, nodes = self._assemble_numpy(leaves, up, fw)
@@ -448,24 +521,28 @@ def check_header(k: int, levels: int, levels_up: int | None) -> None:
 def _check_arrays(
     parents: np.ndarray, descriptors: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The node arrays, checked and made contiguous: int32 parents, uint8 centres, float64
-    finite weights."""
+    """The node arrays, checked and made contiguous: int32 parents, uint8 or finite float32
+    centres, float64 finite weights."""
     parents, descriptors, weights = np.asarray(parents), np.asarray(descriptors), np.asarray(weights)
     n = parents.shape[0] if parents.ndim == 1 else -1
     if n < 1 or parents.dtype.kind not in "iu" or int(parents[0]) != -1:
         raise VocabularyError("vocabulary: node 0 must be the root (parent -1) of integer parents")
-    if descriptors.shape != (n, DESCRIPTOR_BYTES) or weights.shape != (n,):
+    shape_ok = descriptors.ndim == 2 and descriptors.shape[0] == n and descriptors.shape[1] >= 1
+    if not shape_ok or weights.shape != (n,):
         raise VocabularyError(
-            f"vocabulary: arrays disagree: {n} parents, descriptors {descriptors.shape}, "
-            f"weights {weights.shape}"
+            f"vocabulary: arrays disagree: {n} parents, descriptors {descriptors.shape} "
+            f"(expected ({n}, D), D >= 1), weights {weights.shape}"
         )
     if n > 1 and (np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, n))):
         raise VocabularyError("vocabulary: every node's parent must come before it")
-    if descriptors.dtype != np.uint8 or weights.dtype.kind not in "fiu":
+    if descriptors.dtype not in (np.uint8, np.float32) or weights.dtype.kind not in "fiu":
         raise VocabularyError(
-            f"vocabulary: expected uint8 centres and float weights, got {descriptors.dtype} and "
-            f"{weights.dtype}"
+            f"vocabulary: expected uint8 (binary) or float32 (float) centres and float weights, "
+            f"got {descriptors.dtype} and {weights.dtype}"
         )
+    if descriptors.dtype == np.float32 and not np.isfinite(descriptors).all():
+        bad = int(np.flatnonzero(~np.isfinite(descriptors).all(axis=1))[0])
+        raise VocabularyError(f"vocabulary: node {bad} has a NaN or infinite centre")
     w = np.ascontiguousarray(weights, np.float64)
     if not w.flags.writeable:  # a memory-mapped file: the compiled kernels take writable arrays
         w = w.copy()
