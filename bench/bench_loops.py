@@ -469,8 +469,9 @@ def _run_with_vocabulary(ds: Any, gt: Any, cfg: Any, vocabulary: Any, score: str
 
 def bench_sift() -> dict[str, Any]:
     """SIFT (the shipped float vocabulary) against ORB (the shipped binary one) on the corridor
-    and the CamVid revisit development sets: the BoW stages only (preset bow-nogeom, and the
-    DBoW2 top-1 raw-score sweep), as geometric verification matches binary descriptors only."""
+    and the CamVid revisit development sets: the whole ``fast`` preset (verification matches
+    float descriptors by their unit-normalised L2 distance), and the BoW stages alone (preset
+    bow-nogeom, and the DBoW2 top-1 raw-score sweep)."""
     from stablecues.vocabulary import default_vocabulary, default_vocabulary_path
 
     dev = SHARED / "camvid_revisit_dev"
@@ -495,6 +496,7 @@ def bench_sift() -> dict[str, Any]:
             voc = default_vocabulary(features)
             feats = {"features": {"name": features}}
             for label, cfg, score in (
+                ("fast", preset("fast", {**feats, "similarity": False}), "score"),
                 ("bow-nogeom", preset("bow-nogeom", {**feats, "similarity": False}), "score"),
                 ("dbow2 top-1, raw score swept", preset("bow-nogeom", {**TOP1, **feats}), "raw_score"),
             ):

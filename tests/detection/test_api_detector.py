@@ -195,3 +195,15 @@ def test_map_points_on_real_rgbd_frames_match_the_ground_truth() -> None:
             assert rotation_angle_deg(pose[:3, :3].T @ truth[:3, :3]) < 3.0
             checked += 1
     assert checked >= 2
+
+
+def test_the_extractor_name_picks_the_shipped_vocabulary() -> None:
+    """features.name "sift" runs end to end on the shipped SIFT vocabulary: float descriptors in
+    the BoW transform, the database and the matching of the geometric check."""
+    images = [textured(seed) for seed in (0, 1, 2, 3)] + [textured(0)]  # the last revisits the first
+    det = LoopDetector(preset("fast", {"features": {"name": "sift"}, "query": {"exclude_recent": 1}}))
+    assert det.vocabulary.descriptor_kind.kind == "float"
+    results = [det.process(Frame(i, f"{i}.png", float(i), im)) for i, im in enumerate(images)]
+    det.close()
+    assert results[-1].accepted and results[-1].candidate_frame == 0
+    assert not any(r.accepted for r in results[:-1])

@@ -127,3 +127,35 @@ def test_empty_inputs() -> None:
         m = match_features(a, b)
         assert len(m) == 0
         assert m.pairs().shape == (0, 2) and m.distance.dtype == np.int32
+
+
+def test_float_descriptors_match_on_the_binary_scale() -> None:
+    """Float descriptors: unit-normalised L2 times 128, so 0 is identical and ~181 orthogonal;
+    the matches are OpenCV's L2 matches of the normalised vectors."""
+    from stablecues.verification.matching import scaled_distances
+
+    rng = np.random.default_rng(3)
+    cand = rng.normal(size=(200, 128)).astype(np.float32) * 50  # scale does not matter
+    query = (cand[rng.permutation(200)[:120]] + rng.normal(scale=5.0, size=(120, 128))).astype(np.float32)
+    d = scaled_distances(query, cand)
+    unit = lambda x: x / np.linalg.norm(x, axis=1, keepdims=True)  # noqa: E731
+    expected = np.linalg.norm(unit(query)[:, None] - unit(cand)[None], axis=2) * 128
+    np.testing.assert_allclose(d, np.rint(expected), atol=1)
+    e = np.eye(4, dtype=np.float32)
+    assert scaled_distances(e, e)[0, 0] == 0 and scaled_distances(e, e)[0, 1] == round(np.sqrt(2) * 128)
+    m = match_features(_features(query), _features(cand), ratio=0.8, max_distance=256)
+    bf = cv2.BFMatcher(cv2.NORM_L2).match(unit(query).astype(np.float32), unit(cand).astype(np.float32))
+    truth = {x.queryIdx: x.trainIdx for x in bf}
+    assert len(m) >= 110 and all(truth[int(q)] == int(c) for q, c in zip(m.query, m.candidate, strict=True))
+    pairs = scaled_distances(query, cand, np.array([0, 1]), np.array([5, 7]))
+    np.testing.assert_array_equal(pairs, d[[0, 1], [5, 7]])
+    with pytest.raises(InputError, match="candidate's are"):
+        match_features(_features(query), _features(rng.integers(0, 256, (10, 32), dtype=np.uint8)))
+
+
+def test_binary_descriptors_of_other_widths_are_scaled_to_256_bits() -> None:
+    from stablecues.verification.matching import scaled_distances
+
+    a = np.zeros((1, 61), np.uint8)  # AKAZE's 488 bits
+    b = np.full((1, 61), 255, np.uint8)
+    assert scaled_distances(a, b)[0, 0] == 256 and scaled_distances(a, a)[0, 0] == 0

@@ -249,7 +249,7 @@ class LoopDetector:
     ) -> None:
         calibration = as_calibration(calibration)  # a bad path fails before the database opens
         self.config = config or DetectorConfig()
-        self.vocabulary = vocabulary or default_vocabulary()
+        self.vocabulary = vocabulary or default_vocabulary(self.config.features.name)
         if self.vocabulary.scoring in (Scoring.KL, Scoring.DOT_PRODUCT):
             raise ConfigError("the loop detector needs a similarity scoring in [0, 1] (L1, L2, "
                               "chi-square or Bhattacharyya), not KL or dot product")

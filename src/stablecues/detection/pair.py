@@ -103,7 +103,8 @@ class ImagePairVerifier:
             verification=config or VerificationConfig(),
         )
         self.preparer = FramePreparer(
-            detector_config, vocabulary or default_vocabulary(), calib, stereo=stereo, depth=depth
+            detector_config, vocabulary or default_vocabulary(detector_config.features.name), calib,
+            stereo=stereo, depth=depth,
         )
         self.use_vocabulary = use_vocabulary
 

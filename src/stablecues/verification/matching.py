@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError, check_array
-from ..types import Features, FeatureVector
+from ..types import DescriptorKind, Features, FeatureVector
 from ..vocabulary.descriptors import as_words, check_descriptors, hamming_cross, hamming_rows
 
-__all__ = ["Matches", "hamming_matrix", "hamming_pairs", "match_features"]
+__all__ = ["Matches", "hamming_matrix", "hamming_pairs", "match_features", "scaled_distances"]
 
 _NONE = 256  # "second best" when a feature has a single candidate
 
@@ -38,7 +38,8 @@ class Matches:
     Attributes:
         query: (M,) int32 index of each match's query feature.
         candidate: (M,) int32 index of its candidate feature.
-        distance: (M,) int32 Hamming distance of the two descriptors (0..256).
+        distance: (M,) int32 distance of the two descriptors on the scale of
+            :func:`scaled_distances` (0..256; the Hamming distance for 256-bit descriptors).
         ratio: (M,) float32 best / second-best distance (second best 256 when alone).
     """
 
@@ -109,6 +110,49 @@ def hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) 
     return hamming_rows(as_words(a)[ia], as_words(b)[ib])
 
 
+def _unit(d: np.ndarray) -> np.ndarray:
+    x = np.asarray(d, np.float64)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def scaled_distances(
+    a: np.ndarray, b: np.ndarray, ia: np.ndarray | None = None, ib: np.ndarray | None = None
+) -> np.ndarray:
+    """Descriptor distances of any kind on one integer scale of 0..256, 128 meaning "chance".
+
+    Binary descriptors of 256 bits: the Hamming distance itself; of other widths, scaled to 256
+    bits. Float descriptors (SIFT, learned ones): the Euclidean distance of the unit-normalised
+    vectors (0..2) times 128, rounded, so unrelated descriptors (about orthogonal, distance
+    ~1.4) land near the binary "chance" of 128 and ``max_distance``, ``Matches.confidence`` and the
+    ratio test keep their meaning.
+
+    Args:
+        a, b: (N, D) and (M, D) descriptors of one kind.
+        ia, ib: index arrays of the pairs to measure; None for the full (N, M) matrix.
+
+    Returns:
+        int64 distances, (P,) for pairs or (N, M).
+    """
+    kind = DescriptorKind.of(a, "query descriptors")
+    if DescriptorKind.of(b, "candidate descriptors") != kind:
+        raise InputError(f"matching: query descriptors are {kind} but the candidate's are "
+                         f"{DescriptorKind.of(b, 'candidate descriptors')}")
+    check_descriptors(a, "query descriptors", kind)
+    check_descriptors(b, "candidate descriptors", kind)
+    if kind.kind == "float":
+        ua, ub = _unit(a), _unit(b)
+        if ia is None or ib is None:
+            sq = 2.0 - 2.0 * (ua @ ub.T)
+        else:
+            sq = np.einsum("ij,ij->i", ua[ia] - ub[ib], ua[ia] - ub[ib])
+        return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
+    wa, wb = as_words(a), as_words(b)
+    h = hamming_cross(wa, wb) if ia is None or ib is None else hamming_rows(wa[ia], wb[ib])
+    bits = 8 * a.shape[1]
+    h = np.asarray(h, np.int64)
+    return h if bits == 256 else np.rint(h * (256.0 / bits)).astype(np.int64)
+
+
 def _ragged_pairs(query_nodes: np.ndarray, cand_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All (query, candidate) index pairs whose nodes are equal (and >= 0), grouped by query."""
     corder = np.argsort(cand_nodes, kind="stable")
@@ -171,7 +215,8 @@ def match_features(
         ratio: Lowe's ratio; a match needs ``best < ratio * second_best``.
         cross_check: also require the query feature to be the candidate feature's best match
             (among the features it is compared with).
-        max_distance: largest accepted Hamming distance of the best candidate.
+        max_distance: largest accepted distance of the best candidate, on the scale of
+            :func:`scaled_distances` (the Hamming distance for 256-bit descriptors).
 
     Returns:
         One-to-one matches ranked by distance then ratio; empty (correctly shaped) when either
@@ -194,7 +239,7 @@ def match_features(
                 f"got {len(query_fvec)} and {len(candidate_fvec)}"
             )
         qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
-        dist = hamming_pairs(query.descriptors, candidate.descriptors, qi, ci)
+        dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
         best_pos, best, second = _best_two_grouped(qi, dist, n)
         has = best_pos >= 0
         best_j = np.full(n, -1, np.int64)
@@ -205,7 +250,7 @@ def match_features(
             np.minimum.at(ckey, ci, (dist.astype(np.int64) << 32) | qi)
             back = np.where(ckey == np.iinfo(np.int64).max, -1, ckey & 0xFFFFFFFF)
     else:
-        d = hamming_matrix(query.descriptors, candidate.descriptors)
+        d = scaled_distances(query.descriptors, candidate.descriptors)
         best_j = np.argmin(d, axis=1).astype(np.int64)
         best = d[np.arange(n), best_j].astype(np.int64)
         second = np.partition(d, 1, axis=1)[:, 1].astype(np.int64) if m >= 2 else np.full(n, _NONE, np.int64)
