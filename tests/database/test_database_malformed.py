@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dbkit import fill
 
+from dbkit import fill
 from stablecues.database import Database
 from stablecues.database.packing import pack_arrays, unpack_arrays
 from stablecues.errors import DatabaseError, StableCuesError

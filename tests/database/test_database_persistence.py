@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dbkit import fake_features, fill
 
 import stablecues.database.store as store
+from dbkit import fake_features, fill
 from stablecues.database import Database, DatabaseConfig, remove_database
 from stablecues.database.files import index_dir
 from stablecues.database.packing import pack_arrays

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dbkit import brute_scores, fake_features, fill
 
+from dbkit import brute_scores, fake_features, fill
 from stablecues.database import Database, DatabaseConfig, merge_maps
 from stablecues.errors import DatabaseError, InputError
 from stablecues.vocabulary import Vocabulary, train_vocabulary

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dbkit import fake_features
 
+from dbkit import fake_features
 from stablecues.database import Database, DatabaseConfig
 from stablecues.vocabulary import Vocabulary
 
