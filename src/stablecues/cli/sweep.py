@@ -38,6 +38,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     g.add_argument("--serial", action="store_true", help="no cluster: run the cells one after another here")
     p.add_argument("--workers", type=int, default=2, metavar="N",
                    help="worker processes of the local cluster (default 2)")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="compute threads of each cell, OpenCV and the network (default 1: one core per "
+                        "worker process)")
     m = p.add_mutually_exclusive_group()
     m.add_argument("--resume", action="store_true",
                    help="continue interrupted runs, re-evaluate complete ones")
@@ -132,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     tasks = plan_sweep(datasets, args.preset or ["default"], override_sets(args.set, args.vary))
     mode: Mode = "resume" if args.resume else "overwrite" if args.overwrite else "new"
     options = SweepOptions(mode=mode, max_frames=args.max_frames, pictures=args.pictures,
-                           protocol=args.protocol, tolerance=args.tolerance)
+                           protocol=args.protocol, tolerance=args.tolerance, threads=args.threads)
     check_out(tasks, args.out.absolute(), options)  # before a cluster starts
     show = _progress(len(tasks))
     if args.serial:

@@ -138,6 +138,8 @@ class SweepOptions:
         pictures: match pictures of accepted loops to save per run.
         protocol: evaluation protocol ("exact", "tolerance" or "ibow").
         tolerance: +-frames of the tolerant protocols.
+        threads: compute threads of each task (OpenCV and the network); 1 by default, so that
+            n workers of one thread each use n cores and a serial sweep is the one-thread baseline.
     """
 
     mode: Mode = "new"
@@ -145,8 +147,11 @@ class SweepOptions:
     pictures: int = 0
     protocol: Literal["exact", "tolerance", "ibow"] = "exact"
     tolerance: int = 0
+    threads: int = 1
 
     def __post_init__(self) -> None:
+        if self.threads < 1:
+            raise ConfigError(f"threads: expected 1 or more, got {self.threads}")
         if self.mode not in ("new", "overwrite", "resume"):
             raise ConfigError(f"sweep mode: expected new, overwrite or resume, got {self.mode!r}")
         if self.protocol not in ("exact", "tolerance", "ibow"):
@@ -241,6 +246,21 @@ def run_task(task: SweepTask, out: str | Path, options: SweepOptions) -> dict[st
 
     Bad input (:class:`~stablecues.errors.StableCuesError`) gives a row with ``error`` set.
     """
+    import cv2
+
+    from ..semantics import inference
+
+    before = cv2.getNumThreads(), inference.default_threads()
+    cv2.setNumThreads(options.threads)
+    inference.set_default_threads(options.threads)
+    try:
+        return _run_task(task, out, options)
+    finally:  # a serial sweep runs in the caller's process: leave its settings as they were
+        cv2.setNumThreads(before[0])
+        inference.set_default_threads(before[1])
+
+
+def _run_task(task: SweepTask, out: str | Path, options: SweepOptions) -> dict[str, Any]:
     t0 = time.perf_counter()
     run_dir = Path(out) / task.folder
     row: dict[str, Any] = {c: None for c in COLUMNS}
@@ -377,6 +397,15 @@ def _absolute(task: SweepTask) -> SweepTask:
     return SweepTask(SweepDataset(ds.path.absolute(), ds.name, ds.format, gt), task.preset, task.overrides)
 
 
+def _preset_weight(task: SweepTask) -> int:
+    """Rough cost per frame of a cell's settings: the segmentation network about triples it."""
+    from ..detection import preset
+
+    cfg = preset(task.preset, task.override_dict)
+    network = cfg.semantic_source == "network" and (cfg.masking is not None or cfg.weighting is not None)
+    return 3 if network else 1
+
+
 def _frames_hint(path: Path) -> int:
     """A rough size of a dataset, to start the longest tasks first: files in its folder."""
     try:
@@ -389,17 +418,18 @@ def _on_cluster(
     client: Any, tasks: list[SweepTask], root: Path, options: SweepOptions, timeout_s: float | None,
     on_row: Callable[[dict[str, Any]], None] | None,
 ) -> list[dict[str, Any]]:
-    """Submit every task (largest dataset first: the last to finish is then a small one),
-    collect rows in the grid's order."""
+    """Submit every task (the costliest first, longest-processing-time order: the last to
+    finish is then a short one), collect rows in the grid's order."""
     from distributed import KilledWorker, as_completed
 
     from .cluster import ClusterError
 
     sizes = {path: _frames_hint(path) for path in {t.dataset.path for t in tasks}}
-    order = sorted(range(len(tasks)), key=lambda i: (-sizes[tasks[i].dataset.path], i))
+    cost = [sizes[t.dataset.path] * _preset_weight(t) for t in tasks]
+    order = sorted(range(len(tasks)), key=lambda i: (-cost[i], i))
     futures = [
         client.submit(run_task, tasks[i], root, options, key=f"sweep-{tasks[i].folder}-{os.urandom(4).hex()}",
-                      priority=sizes[tasks[i].dataset.path], pure=False)
+                      priority=cost[i], pure=False)
         for i in order
     ]
     index = {f.key: i for i, f in zip(order, futures, strict=True)}

@@ -137,8 +137,11 @@ class SegmentationModel:
         self.class_names: tuple[str, ...] = tuple(meta.get("classes", CLASS_NAMES))
 
     @classmethod
-    def load(cls, path: str | Path | None = None, *, threads: int = 2, seed: int = 0) -> SegmentationModel:
-        """Open ONNX weights (the shipped ones when ``path`` is None).
+    def load(
+        cls, path: str | Path | None = None, *, threads: int | None = None, seed: int = 0
+    ) -> SegmentationModel:
+        """Open ONNX weights (the shipped ones when ``path`` is None), inferring on ``threads``
+        threads (None: :func:`set_default_threads`' value, 2 unless changed).
 
         The metadata JSON beside the file (same stem) is read when present; without it the
         shipped defaults (input 288x384, T = 6) apply.
@@ -159,7 +162,7 @@ class SegmentationModel:
             except (OSError, ValueError) as exc:
                 raise ModelError(f"{meta_path}: expected JSON metadata, could not parse it ({exc})") from exc
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, int(threads))
+        opts.intra_op_num_threads = max(1, int(_DEFAULT_THREADS[0] if threads is None else threads))
         opts.inter_op_num_threads = 1
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
@@ -244,6 +247,23 @@ class SegmentationModel:
         x = np.ascontiguousarray(x.transpose(2, 0, 1)[None])
         probs = self.sample(x, t)
         return summarize_samples(probs, (int(rgb.shape[0]), int(rgb.shape[1])), uncertainty)
+
+
+_DEFAULT_THREADS = [2]
+
+
+def default_threads() -> int:
+    """The threads of networks loaded without a ``threads`` argument (see :func:`set_default_threads`)."""
+    return _DEFAULT_THREADS[0]
+
+
+def set_default_threads(threads: int) -> None:
+    """The threads of networks loaded from now on without a ``threads`` argument (the
+    detector's own network among them): a worker process of a sweep sets 1, so that two
+    workers on two cores do not each run two threads."""
+    if int(threads) < 1:
+        raise ConfigError(f"threads: expected 1 or more, got {threads}")
+    _DEFAULT_THREADS[0] = int(threads)
 
 
 def check_t(t: int) -> None:
