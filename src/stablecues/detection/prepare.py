@@ -126,7 +126,7 @@ class _Laps:
 
     def __call__(self, stage: str) -> None:
         now = time.perf_counter()
-        self.timings[stage] = (now - self._t) * 1e3
+        self.timings[stage] = self.timings.get(stage, 0.0) + (now - self._t) * 1e3  # a stage may recur
         self._t = now
 
 
