@@ -47,6 +47,10 @@ class ModelError(StableCuesError):
     """A network weights file that is missing or unreadable."""
 
 
+class ClusterError(StableCuesError):
+    """A Dask cluster that cannot be reached or started, or a task lost with its worker."""
+
+
 class MissingDependencyError(StableCuesError, ImportError):
     """An optional dependency that a chosen feature needs is not installed; the message says
     how to install it. An :class:`ImportError` too, so code catching that keeps working."""

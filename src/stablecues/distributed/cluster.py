@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from ..errors import ConfigError, StableCuesError
+from ..errors import ClusterError, ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -19,8 +19,7 @@ log = logging.getLogger(__name__)
 CONNECT_TIMEOUT_S = 60.0
 
 
-class ClusterError(StableCuesError):
-    """A Dask cluster that cannot be reached or started, or a task that was lost with its worker."""
+__all__ = ["CONNECT_TIMEOUT_S", "ClusterError", "open_client", "worker_addresses"]
 
 
 @contextmanager
