@@ -273,6 +273,7 @@ class LoopDetector:
         self._window_n = 0
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
+        self.preparer.restore_certainties([float(m["certainty"]) for m in metas if "certainty" in m])
         if self.config.monocular is not None:  # the latest entries are the next frame's neighbours
             for k in range(max(0, n - self.config.monocular.neighbours), n):
                 e = self.db.entry(k)
@@ -453,6 +454,8 @@ class LoopDetector:
     def _store(self, frame: Frame, prep: PreparedFrame) -> None:
         t = time.perf_counter()
         meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
+        if prep.certainty is not None:
+            meta["certainty"] = prep.certainty
         if self._window_island is not None:
             meta.update(window_island=list(self._window_island), window_n=self._window_n,
                         window_query=self._window_query)

@@ -98,6 +98,9 @@ class PreparedFrame:
         mask_fallback: masking kept too few features, so every feature was kept.
         timings: milliseconds per stage (extract, segment, mask, transform, lift).
         t_start: ``time.perf_counter()`` when preparation began.
+        certainty: the frame certainty of the network's segmentation of this frame (None when
+            the network did not run), kept with the entry so a reopened map restores the
+            stream's domain window (``DetectorConfig.domain_window``).
     """
 
     features: Features
@@ -110,6 +113,7 @@ class PreparedFrame:
     points_source: str | None = None
     timings: dict[str, float] = field(default_factory=dict)
     t_start: float = 0.0
+    certainty: float | None = None
 
     @property
     def view(self) -> View:
@@ -166,6 +170,7 @@ class FramePreparer:
         self.depth_config = depth or DepthConfig()
         self._segmenter = segmenter
         self._certainties: deque[float] = deque(maxlen=config.domain_window)
+        self._frame_certainty: float | None = None
         self._lifters: dict[int, StereoLifter] = {}
         self._verifiers: dict[int, Verifier] = {}
         self._guessed: dict[tuple[int, int], Calibration] = {}
@@ -245,6 +250,7 @@ class FramePreparer:
                 image that ``semantic_source="labels"`` needs, or malformed 3D input.
         """
         laps = _Laps()
+        self._frame_certainty = None
         calib = self.calibration_of(frame)
         features = self._given_features(frame, features)
         if features is None:
@@ -276,7 +282,7 @@ class FramePreparer:
             self.remember(features, fvec)
             laps("lift")  # 3D from whichever source: map points, stereo, depth or triangulation
         return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, source,
-                             laps.timings, laps.start)
+                             laps.timings, laps.start, self._frame_certainty)
 
     def _given_features(self, frame: Frame, features: FeaturesLike | None) -> Features | None:
         """The SLAM system's features of a frame, as Features of the vocabulary's kind, or None."""
@@ -329,8 +335,15 @@ class FramePreparer:
             samples = self.config.segmentation_samples
             self._segmenter = lambda image: model.predict(image, samples)
         seg = self._segmenter(frame.image)
-        self._certainties.append(seg.frame_certainty())
+        self._frame_certainty = seg.frame_certainty()
+        self._certainties.append(self._frame_certainty)
         return seg
+
+    def restore_certainties(self, certainties: list[float]) -> None:
+        """Start the domain window from the certainties of a reopened map's latest frames (oldest
+        first), so a resumed stream gates as an uninterrupted one would."""
+        self._certainties.clear()
+        self._certainties.extend(float(c) for c in certainties[-self.config.domain_window:])
 
     def domain_certainty(self) -> float | None:
         """The median frame certainty of the last ``domain_window`` segmented frames (None
