@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from make_vocabulary import camvid_train_val  # the same frames as the ORB vocabulary
 from stablecues.cli.vocab import dask_client
 from stablecues.features import SiftConfig
-from stablecues.imageio import list_images
 from stablecues.vocabulary import DEFAULT_VOCABULARIES, save_vocabulary, train_vocabulary
 from stablecues.vocabulary.distributed import extract_descriptor_sets
 
@@ -43,14 +43,7 @@ def main() -> None:
     ap.add_argument("--scheduler", default=None, help="dask scheduler address or 'local'")
     args = ap.parse_args()
 
-    camvid = args.data / "camvid"
-    if not (camvid / "train").is_dir() or not (camvid / "val").is_dir():
-        raise SystemExit(f"no CamVid train/val images under {camvid}")
-    # natural order == sorted order for CamVid's zero-padded names
-    images = [p for split in ("train", "val")
-              for p in list_images(camvid / split, f"CamVid {split}", suffixes=(".jpg",), allow_empty=True)]
-    if not images:
-        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    images = camvid_train_val(args.data)
     config = SiftConfig()
     t0 = time.perf_counter()
     with dask_client(args.scheduler) as client:

@@ -26,6 +26,19 @@ from stablecues.vocabulary import DEFAULT_VOCABULARY, save_vocabulary, train_voc
 REPO = Path(__file__).resolve().parents[1]
 
 
+def camvid_train_val(data: Path) -> list[Path]:
+    """The CamVid ``train`` + ``val`` frames under ``data/camvid`` (never ``test``), in order."""
+    camvid = data / "camvid"
+    if not (camvid / "train").is_dir() or not (camvid / "val").is_dir():
+        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    # natural order == sorted order for CamVid's zero-padded names
+    images = [p for split in ("train", "val")
+              for p in list_images(camvid / split, f"CamVid {split}", suffixes=(".jpg",), allow_empty=True)]
+    if not images:
+        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    return images
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -35,14 +48,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    camvid = args.data / "camvid"
-    if not (camvid / "train").is_dir() or not (camvid / "val").is_dir():
-        raise SystemExit(f"no CamVid train/val images under {camvid}")
-    # natural order == sorted order for CamVid's zero-padded names
-    images = [p for split in ("train", "val")
-              for p in list_images(camvid / split, f"CamVid {split}", suffixes=(".jpg",), allow_empty=True)]
-    if not images:
-        raise SystemExit(f"no CamVid train/val images under {camvid}")
+    images = camvid_train_val(args.data)
     extractor = make_extractor(OrbConfig())
     sets = [extractor.extract(read_image(p, "grey")).descriptors for p in tqdm(images, desc="ORB")]
     t0 = time.perf_counter()
