@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -43,3 +44,19 @@ def voc(images: list[np.ndarray]) -> Vocabulary:
 def many_images() -> list[np.ndarray]:
     """300 images: enough for many segments with a small tail."""
     return make_images(300, seed=1)
+
+
+def write_wall_drive(root: Path, frames: int = 16) -> Path:
+    """``frames`` grey 320x240 PNGs driving along a textured wall, the frames from the 10th on
+    revisiting the first ones (5 px off); returns ``root``."""
+    rng = np.random.default_rng(3)
+    pano = np.full((260, 1400), 110, np.uint8)
+    for _ in range(1600):
+        x, y = int(rng.integers(0, 1400)), int(rng.integers(0, 260))
+        w, h = int(rng.integers(3, 25)), int(rng.integers(3, 25))
+        cv2.rectangle(pano, (x, y), (x + w, y + h), int(rng.integers(0, 256)), -1)
+    pano = cv2.GaussianBlur(pano, (3, 3), 0)
+    for i in range(frames):
+        x = 60 * i if i < 9 else 60 * (i - 9) + 5
+        cv2.imwrite(str(root / f"{i:03d}.png"), pano[10:250, x : x + 320])
+    return root

@@ -15,10 +15,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
+from conftest import write_wall_drive
 from stablecues.cli.main import main
 from stablecues.runs import load_run
 
@@ -74,25 +74,10 @@ sys.exit(main(argv))
 """
 
 
-def _panorama() -> np.ndarray:
-    rng = np.random.default_rng(3)
-    img = np.full((260, 1400), 110, np.uint8)
-    for _ in range(1600):
-        x, y = int(rng.integers(0, 1400)), int(rng.integers(0, 260))
-        w, h = int(rng.integers(3, 25)), int(rng.integers(3, 25))
-        cv2.rectangle(img, (x, y), (x + w, y + h), int(rng.integers(0, 256)), -1)
-    return cv2.GaussianBlur(img, (3, 3), 0)
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """16 frames driving along a wall, the last 7 revisiting the first ones."""
-    root = tmp_path_factory.mktemp("drive")
-    pano = _panorama()
-    for i in range(FRAMES):
-        x = 60 * i if i < 9 else 60 * (i - 9) + 5
-        cv2.imwrite(str(root / f"{i:03d}.png"), pano[10:250, x : x + 320])
-    return root
+    return write_wall_drive(tmp_path_factory.mktemp("drive"), FRAMES)
 
 
 @pytest.fixture(scope="module")
