@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
+from test_api_detector import textured
 
 from stablecues import Frame, LoopDetector, preset
 from stablecues.semantics.classes import CLASS_NAMES, NUM_CLASSES
@@ -16,13 +16,7 @@ CAR = CLASS_NAMES.index("Car")
 
 
 def _image(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed % 5)  # five places, revisited
-    img = np.full((240, 320), 100, np.uint8)
-    for _ in range(400):
-        x, y = int(rng.integers(0, 320)), int(rng.integers(0, 240))
-        cv2.rectangle(img, (x, y), (x + int(rng.integers(3, 20)), y + int(rng.integers(3, 20))),
-                      int(rng.integers(0, 256)), -1)
-    return cv2.GaussianBlur(img, (3, 3), 0)
+    return textured(seed % 5)  # five places, revisited
 
 
 def _segmenter(image: np.ndarray) -> SegmentationResult:

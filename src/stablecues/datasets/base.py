@@ -124,11 +124,19 @@ class SequenceDataset:
         for i in range(len(self.records)):
             yield self[i]
 
-    def __getitem__(self, index: int) -> Frame:
+    def frame_index(self, index: int) -> int:
+        """``index`` as a position in ``records`` (negative counts from the end).
+
+        Raises:
+            IndexError: outside the sequence.
+        """
         n = len(self.records)
         if not -n <= index < n:
             raise IndexError(f"frame {index} out of range for {n} frames")
-        index %= n
+        return index % n
+
+    def __getitem__(self, index: int) -> Frame:
+        index = self.frame_index(index)
         rec = self.records[index]
         mode: ImageMode = "8bit-grey" if self.grey else "8bit"
         image = read_image(rec.image, mode)

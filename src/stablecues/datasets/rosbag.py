@@ -643,10 +643,7 @@ class RosbagDataset(SequenceDataset):
     _lock: Any = field(default_factory=threading.Lock, init=False, repr=False)
 
     def __getitem__(self, index: int) -> Frame:
-        n = len(self.records)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {n} frames")
-        index %= n
+        index = self.frame_index(index)
         rec = self.records[index]
         with self._lock:
             reader = self._open()
