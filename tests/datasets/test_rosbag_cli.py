@@ -90,3 +90,8 @@ def test_run_takes_the_bag_options(tmp_path: Path, euroc: Euroc, capsys: pytest.
     assert main(["run", str(bag), "--out", str(tmp_path / "bad"), "--topic", "/nope"]) == 1
     err = capsys.readouterr().err.strip()
     assert "/nope" in err and "\n" not in err
+    # bag options on a dataset that is not a bag: refused, not ignored
+    assert main(["run", str(euroc.root), "--out", str(tmp_path / "folder"), "--topic", "/cam0"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("--topic: for ROS bags only, and this dataset is read as a folder") and "\n" not in err
+    assert not (tmp_path / "folder").exists()

@@ -100,17 +100,23 @@ def add_progress_option(parser: argparse.ArgumentParser) -> None:
 FORMAT_HELP = "auto | folder | tum | kitti | euroc | fabmap | vprbench | rosbag (default auto)"
 
 
+#: the ROS-bag options and their defaults (an option off its default is "given")
+_ROSBAG_DEFAULTS: dict[str, object] = {
+    "topic": None, "right_topic": None, "mono": False, "stamps": "auto", "max_stereo_difference": 0.002,
+}
+
+
 def add_rosbag_options(parser: argparse.ArgumentParser) -> None:
     """--topic, --right-topic, --mono, --stamps, --max-stereo-difference (ROS bags only)."""
     parser.add_argument("--topic", help="ROS bag: the image topic (left camera) instead of the one found")
     parser.add_argument("--right-topic", help="ROS bag: the right camera's image topic")
     parser.add_argument("--mono", action="store_true", help="ROS bag: left images only, no stereo pair")
     parser.add_argument(
-        "--stamps", choices=("auto", "header", "bag"), default="auto",
+        "--stamps", choices=("auto", "header", "bag"), default=_ROSBAG_DEFAULTS["stamps"],
         help="ROS bag: header stamps, bag time, or header stamps unless one is zero (default)",
     )
     parser.add_argument(
-        "--max-stereo-difference", type=float, default=0.002, metavar="S",
+        "--max-stereo-difference", type=float, default=_ROSBAG_DEFAULTS["max_stereo_difference"], metavar="S",
         help="ROS bag: largest gap between a left and its right image, seconds (default 0.002)",
     )
 
@@ -122,7 +128,19 @@ def rosbag_options(args: argparse.Namespace) -> dict[str, object]:
 
 
 def is_rosbag(args: argparse.Namespace) -> bool:
-    """Whether ``args.dataset`` is read as a ROS bag (``--format rosbag``, or auto and a bag)."""
-    from ..datasets.rosbag import is_bag
+    """Whether ``args.dataset`` is read as a ROS bag (``--format rosbag``, or auto and a bag).
 
-    return bool(args.format == "rosbag" or (args.format == "auto" and is_bag(args.dataset)))
+    Raises:
+        ConfigError: a ROS-bag option given for a dataset that is not read as a bag.
+    """
+    from ..datasets.rosbag import is_bag
+    from ..errors import ConfigError
+
+    bag = bool(args.format == "rosbag" or (args.format == "auto" and is_bag(args.dataset)))
+    given = [f"--{name.replace('_', '-')}" for name, default in _ROSBAG_DEFAULTS.items()
+             if getattr(args, name) != default]
+    if given and not bag:
+        raise ConfigError(f"{args.dataset}: {', '.join(given)}: for ROS bags only, and this dataset is "
+                          f"read as {args.format if args.format != 'auto' else 'a folder'}")
+    return bag
+

@@ -150,7 +150,8 @@ def run(args: argparse.Namespace) -> int:
             result = run_sweep(tasks, args.out, options, client=client, timeout_s=args.timeout, on_row=show)
     print(f"{len(tasks)} tasks in {result.wall_s:.1f} s; table: {result.csv_path}, {result.json_path}")
     if result.failures:
+        first = result.failures[0]
         print(f"stablecues sweep: {len(result.failures)} of {len(tasks)} tasks failed (see 'error' in the "
-              "table)", file=sys.stderr)
+              f"table); first, {Path(first['run']).name}: {first['error']}", file=sys.stderr)
         return 1
     return 0
