@@ -6,9 +6,14 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import shared_path
 from stablecues.errors import InputError
+from stablecues.features import OrbExtractor
+from stablecues.imageio import read_image
 from stablecues.types import Features, FeatureVector
-from stablecues.verification import hamming_matrix, hamming_pairs, match_features
+from stablecues.verification import Matches, hamming_matrix, hamming_pairs, match_features
+from stablecues.vocabulary import default_vocabulary
+from stablecues.vocabulary.engine import compiled_kernels
 
 
 def _features(desc: np.ndarray) -> Features:
@@ -159,3 +164,52 @@ def test_binary_descriptors_of_other_widths_are_scaled_to_256_bits() -> None:
     a = np.zeros((1, 61), np.uint8)  # AKAZE's 488 bits
     b = np.full((1, 61), 255, np.uint8)
     assert scaled_distances(a, b)[0, 0] == 256 and scaled_distances(a, a)[0, 0] == 0
+
+
+needs_numba = pytest.mark.skipif(compiled_kernels() is None, reason="numba is not available")
+
+
+def _assert_same_matches(a: Matches, b: Matches) -> None:
+    for name in ("query", "candidate", "distance", "ratio"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_matching_agrees_with_numpy_on_ties_and_lone_candidates(seed: int) -> None:
+    """Descriptors drawn from a small pool (many equal distances), nodes with one candidate,
+    none, or many, and features without a node (-1): both engines pick the same matches."""
+    rng = np.random.default_rng(seed)
+    pool = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    n, m = int(rng.integers(1, 400)), int(rng.integers(1, 400))
+    qd = _flip(pool[rng.integers(0, 40, n)], 3, rng)
+    cd = _flip(pool[rng.integers(0, 40, m)], 3, rng)
+    qn = rng.integers(-1, 30, n).astype(np.int32)
+    cn = rng.integers(-1, 45, m).astype(np.int32)
+    q, c = _features(qd), _features(cd)
+    qv, cv = FeatureVector(qn, 2), FeatureVector(cn, 2)
+    for ratio, ceiling in ((0.8, 64), (1.0, 256), (0.6, 40)):
+        _assert_same_matches(
+            match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, engine="numpy"),
+            match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, engine="compiled"),
+        )
+
+
+@needs_numba
+def test_compiled_matching_agrees_with_numpy_on_real_frames() -> None:
+    files = sorted(shared_path("camvid", "test").glob("*.jpg"))[:60:6]
+    if not files:
+        pytest.skip("../shared/data/camvid/test is not here")
+    voc = default_vocabulary()
+    extractor = OrbExtractor()
+    feats = [extractor.extract(read_image(f, "grey")) for f in files]
+    fvecs = [voc.transform(f.descriptors)[1] for f in feats]
+    total = 0
+    for i in range(len(feats)):
+        for j in (i + 1, i + 4):
+            if j < len(feats):
+                a = match_features(feats[i], feats[j], fvecs[i], fvecs[j], engine="numpy")
+                b = match_features(feats[i], feats[j], fvecs[i], fvecs[j], engine="compiled")
+                _assert_same_matches(a, b)
+                total += len(a)
+    assert total > 200  # real matches were compared, not empty sets

@@ -19,12 +19,14 @@ word by word (4x faster than ``.sum(-1)`` on the 3-D popcount array).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..errors import InputError, check_array
 from ..types import DescriptorKind, Features, FeatureVector
 from ..vocabulary.descriptors import as_words, check_descriptors, hamming_cross, hamming_rows
+from ..vocabulary.engine import compiled_kernels, resolve
 
 __all__ = ["Matches", "hamming_matrix", "hamming_pairs", "match_features", "scaled_distances"]
 
@@ -169,6 +171,38 @@ def _ragged_pairs(query_nodes: np.ndarray, cand_nodes: np.ndarray) -> tuple[np.n
     return qi, ci
 
 
+def _binary_kernels(a: np.ndarray, b: np.ndarray, engine: str, cross_check: bool) -> Any:
+    """The compiled kernels when they can match these descriptors (256-bit binary, no
+    cross-check, the engine allowing it), else None."""
+    if cross_check or engine == "numpy":
+        return None
+    kind = DescriptorKind.of(a, "query descriptors")
+    if DescriptorKind.of(b, "candidate descriptors") != kind:
+        raise InputError(f"matching: query descriptors are {kind} but the candidate's are "
+                         f"{DescriptorKind.of(b, 'candidate descriptors')}")
+    if kind.kind == "float" or a.shape[1] != 32:
+        return None
+    check_descriptors(a, "query descriptors", kind)
+    check_descriptors(b, "candidate descriptors", kind)
+    if resolve(engine) != "compiled":
+        return None
+    return compiled_kernels()
+
+
+def _best_two_compiled(
+    kernels: Any, a: np.ndarray, b: np.ndarray, query_nodes: np.ndarray, cand_nodes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per query feature: its nearest candidate (-1: none), best and second-best distance,
+    among the candidates under its node; what :func:`_ragged_pairs` and
+    :func:`_best_two_grouped` give, in one compiled loop."""
+    corder = np.argsort(cand_nodes, kind="stable")
+    n = query_nodes.shape[0]
+    best_j, best, second = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    kernels.best_two_binary(as_words(a), as_words(b), query_nodes, np.argsort(query_nodes),
+                            cand_nodes[corder], corder, _NONE, best_j, best, second)
+    return best_j, best, second
+
+
 def _best_two_grouped(
     qi: np.ndarray, dist: np.ndarray, n_query: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -203,6 +237,7 @@ def match_features(
     cross_check: bool = False,
     *,
     max_distance: int = 64,
+    engine: str = "auto",
 ) -> Matches:
     """Match query features to candidate features.
 
@@ -217,6 +252,10 @@ def match_features(
             (among the features it is compared with).
         max_distance: largest accepted distance of the best candidate, on the scale of
             :func:`scaled_distances` (the Hamming distance for 256-bit descriptors).
+        engine: ``"auto"``, ``"compiled"`` or ``"numpy"`` (see
+            :mod:`stablecues.vocabulary.engine`): the nearest two of 256-bit descriptors under
+            their nodes (no cross-check) in one compiled loop, or vectorised over all pairs;
+            the two give identical matches.
 
     Returns:
         One-to-one matches ranked by distance then ratio; empty (correctly shaped) when either
@@ -238,12 +277,18 @@ def match_features(
                 f"feature vectors: expected {n} and {m} nodes like the features, "
                 f"got {len(query_fvec)} and {len(candidate_fvec)}"
             )
-        qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
-        dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
-        best_pos, best, second = _best_two_grouped(qi, dist, n)
-        has = best_pos >= 0
-        best_j = np.full(n, -1, np.int64)
-        best_j[has] = ci[best_pos[has]]
+        kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine, cross_check)
+        if kernels is not None:
+            best_j, best, second = _best_two_compiled(
+                kernels, query.descriptors, candidate.descriptors, query_fvec.nodes, candidate_fvec.nodes)
+            has = best_j >= 0
+        else:
+            qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
+            dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
+            best_pos, best, second = _best_two_grouped(qi, dist, n)
+            has = best_pos >= 0
+            best_j = np.full(n, -1, np.int64)
+            best_j[has] = ci[best_pos[has]]
         if cross_check:
             # best query of every candidate feature among the pairs it takes part in
             ckey = np.full(m, np.iinfo(np.int64).max, np.int64)

@@ -11,7 +11,10 @@ lowest child, same summation order per word), so their results are identical to 
 :func:`descend` for ORB's 4-word binary descriptors (unrolled, in groups), :func:`descend_words`
 for binary descriptors of any other width, :func:`descend_float` for float descriptors
 (squared Euclidean distance summed in float64 in index order, as the NumPy path sums it;
-``tests/vocabulary/test_vocab_float.py`` checks the two agree).
+``tests/vocabulary/test_vocab_float.py`` checks the two agree). One more kernel serves the
+matcher: :func:`best_two_binary`, each query descriptor's nearest and second-nearest
+candidate under its vocabulary node (``tests/verification/test_verification_matching.py``
+checks it against NumPy).
 """
 
 from __future__ import annotations
@@ -223,3 +226,59 @@ def transform(q: np.ndarray, blocks: np.ndarray, kids: np.ndarray, counts: np.nd
     leaves = np.empty(q.shape[0], np.int32)
     descend(q, blocks, kids, counts, row, leaves)
     return assemble(leaves, node_weight, node_word, di_table, feature_weight, weighted, add)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def best_two_binary(qw: np.ndarray, cw: np.ndarray, qnodes: np.ndarray, qorder: np.ndarray,
+                    csorted: np.ndarray, corder: np.ndarray, none: int, best_j: np.ndarray,
+                    best: np.ndarray, second: np.ndarray) -> None:
+    """Nearest and second-nearest candidate of each query descriptor among those under its node.
+
+    Queries are visited in node order (``qorder``) while a cursor walks the candidates sorted by
+    node (``csorted``, ``corder``: a stable sort, so ascending indices within a node): one
+    linear pass instead of a binary search per query. Ties go to the lower candidate index;
+    with a single candidate the second distance is ``none``; without any (or ``qnodes[i] <
+    0``) ``best_j`` is -1, ``best`` ``none + 1`` and ``second`` ``none``, as the NumPy path gives.
+
+    Args:
+        qw: (N, W) uint64 query descriptors; cw: (M, W) uint64 candidate descriptors.
+        qnodes: (N,) vocabulary node of each query descriptor; qorder: (N,) its sorting order.
+        csorted: (M,) candidate nodes sorted; corder: (M,) the sorting order.
+        none: the distance standing for "no second candidate".
+        best_j, best, second: (N,) int64 outputs.
+    """
+    n = qw.shape[0]
+    m = csorted.shape[0]
+    width = qw.shape[1]
+    cursor = 0
+    for t in range(n):
+        i = qorder[t]
+        node = qnodes[i]
+        while cursor < m and csorted[cursor] < node:
+            cursor += 1
+        a = cursor
+        b = cursor
+        while b < m and csorted[b] == node:
+            b += 1
+        if node < 0 or b <= a:
+            best_j[i] = -1
+            best[i] = none + 1
+            second[i] = none
+            continue
+        b1 = np.int64(1) << 40
+        b2 = np.int64(1) << 40
+        bj = np.int64(-1)
+        for p in range(a, b):
+            c = corder[p]
+            d = np.int64(0)
+            for k in range(width):
+                d += np.int64(_popcount(qw[i, k] ^ cw[c, k]))
+            if d < b1:
+                b2 = b1
+                b1 = d
+                bj = c
+            elif d < b2:
+                b2 = d
+        best_j[i] = bj
+        best[i] = b1
+        second[i] = b2 if b - a > 1 else none

@@ -80,6 +80,9 @@ def _warm(kernels: ModuleType) -> None:
     fw = np.ones(1)
     kernels.assemble(out, weight, word, table, fw, True, True)
     kernels.transform(q, blocks, kids, counts, row, weight, word, table, fw, False, False)
+    one = np.zeros(1, np.int64)
+    node = np.zeros(1, np.int32)
+    kernels.best_two_binary(q, q, node, one, node, one, 256, one.copy(), one.copy(), one.copy())
 
 
 def resolve(requested: str) -> str:
