@@ -10,7 +10,8 @@ import pytest
 from stablecues.errors import ConfigError, InputError, ModelError
 from stablecues.semantics import SegmentationModel
 from stablecues.semantics.data import read_rgb
-from stablecues.semantics.inference import default_weights_path, summarize_samples
+from stablecues.semantics.inference import class_map, default_weights_path, summarize_samples
+from stablecues.vocabulary.engine import compiled_kernels
 
 TINY_WIDTHS = (4, 8, 8, 16)
 TINY_SIZE = (48, 64)
@@ -143,3 +144,17 @@ def test_shipped_weights_load_and_segment() -> None:
     assert model.input_size[0] % 16 == 0 and model.default_t >= 1
     r = model.predict(np.full((77, 101, 3), 128, np.uint8))
     assert r.labels.shape == (77, 101)
+
+
+@pytest.mark.skipif(compiled_kernels() is None, reason="numba is not available")
+def test_class_map_engines_agree_with_argmax_on_ties() -> None:
+    rng = np.random.default_rng(4)
+    scores = rng.random((37, 53, 11), dtype=np.float32)
+    scores[::3, ::2] = np.round(scores[::3, ::2], 1)  # many equal maxima: the first one wins
+    scores[5, 7, :] = 0.25
+    expected = scores.argmax(axis=2).astype(np.uint8)
+    for engine in ("numpy", "compiled"):
+        out = class_map(scores, engine)
+        assert out.dtype == np.uint8 and out.shape == (37, 53)
+        np.testing.assert_array_equal(out, expected)
+    assert class_map(scores, "compiled")[5, 7] == 0

@@ -397,15 +397,18 @@ class LoopDetector:
             return Status.LOOP_DETECTED, None, ()
         verifier = self.preparer.verifier(prep.calibration)
         checked = []
+        most = 0  # inliers of the best loop accepted so far: a candidate with fewer matches cannot win
         for island in found.islands[: self.config.query.islands_verified]:
-            result = verifier.verify_entry(prep.view, self.db.entry(island.best))
+            result = verifier.verify_entry(prep.view, self.db.entry(island.best), must_beat=most)
             checked.append(Checked(island, self._entry_frames[island.best], result))
+            if result.accepted:
+                most = max(most, result.n_inliers)
         accepted = [c for c in checked if c.verification.accepted]
         if not accepted:
             return Status.NO_GEOMETRICAL_CONSISTENCY, checked[0].verification, tuple(checked)
         best = max(accepted, key=lambda c: (c.verification.n_inliers, c.island.best_score))
         entry, result = best.island.best, best.verification
-        for e, r in self._refine(prep, verifier, best.island, checked):
+        for e, r in self._refine(prep, verifier, best.island, checked, result.n_inliers):
             if r.accepted and r.n_inliers > result.n_inliers:
                 entry, result = e, r
         if result.pose is None and verifier.camera is None:
@@ -418,17 +421,20 @@ class LoopDetector:
         return Status.LOOP_DETECTED, result, tuple(checked)
 
     def _refine(
-        self, prep: PreparedFrame, verifier: Verifier, island: Island, checked: list[Checked]
+        self, prep: PreparedFrame, verifier: Verifier, island: Island, checked: list[Checked], inliers: int
     ) -> list[tuple[int, Verification]]:
         """The entries of the accepted island next to its best one (``query.refine`` either side),
-        verified too: the neighbour that fits the geometry best is the loop's entry."""
+        verified too: the neighbour that fits the geometry best (more than ``inliers``, the
+        best so far) is the loop's entry."""
         r = self.config.query.refine
         out = []
         for e in range(max(island.first, island.best - r), min(island.last, island.best + r) + 1):
             if e != island.best:
-                result = verifier.verify_entry(prep.view, self.db.entry(e))
+                result = verifier.verify_entry(prep.view, self.db.entry(e), must_beat=inliers + 1)
                 checked.append(Checked(island, self._entry_frames[e], result))
                 out.append((e, result))
+                if result.accepted:
+                    inliers = max(inliers, result.n_inliers)
         return out
 
     def _align(

@@ -120,7 +120,11 @@ def distribute_quadtree(
     if n <= quota:
         return np.argsort(-responses, kind="stable")
     side = float(max(extent[0], extent[1], 1.0))
+    # depths with fewer than ``quota`` cells (4^depth < quota) cannot stop the search: start at
+    # the first with enough, unless the cells fall below a pixel before it
     depth = 0
+    while (1 << (2 * depth)) < quota and side / (1 << depth) >= 1.0:
+        depth += 1
     cells = np.zeros(n, np.int64)
     while True:
         cell = side / (1 << depth)
@@ -200,9 +204,9 @@ class OrbExtractor:
             kps = _merge_keypoints(kps, list(extra))
         if not kps:
             return Features.empty(size)
-        pts = np.array([k.pt for k in kps], np.float32)
-        resp = np.array([k.response for k in kps], np.float32)
-        octv = np.array([k.octave for k in kps], np.int64)
+        pts = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
+        resp = np.fromiter((k.response for k in kps), np.float32, len(kps))
+        octv = np.fromiter((k.octave for k in kps), np.int64, len(kps))
         quotas = level_quotas(c.n_features, c.scale_factor, c.n_levels)
         # Levels that lack corners hand their unused quota down to the next level.
         keep: list[np.ndarray] = []

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError, InputError, ModelError
+from ..vocabulary.engine import compiled_kernels, resolve
 from .classes import CLASS_NAMES, NUM_CLASSES
 
 log = logging.getLogger(__name__)
@@ -272,6 +273,19 @@ def check_t(t: int) -> None:
         raise ConfigError(f"T: expected at least 1 Monte-Carlo sample, got {t}")
 
 
+def class_map(hwc: np.ndarray, engine: str = "auto") -> np.ndarray:
+    """(H, W) uint8 index of the largest of (H, W, C) float32 finite scores per pixel (the first
+    of equal ones): ``hwc.argmax(axis=2)``, in a compiled loop when numba is there (about
+    1 ms instead of 2.5-6 ms for 480x360 and 11 classes; ``engine`` as for the vocabulary)."""
+    if hwc.dtype == np.float32 and hwc.flags.c_contiguous and resolve(engine) == "compiled":
+        kernels = compiled_kernels()
+        if kernels is not None:
+            out = np.empty(hwc.shape[:2], np.uint8)
+            kernels.argmax_channels(hwc, out)
+            return out
+    return hwc.argmax(axis=2).astype(np.uint8)
+
+
 def summarize_samples(
     probs: np.ndarray, size: tuple[int, int], uncertainty: str = "variance"
 ) -> SegmentationResult:
@@ -298,7 +312,7 @@ def summarize_samples(
     height, width = size
     hwc = np.ascontiguousarray(mean.transpose(1, 2, 0))
     up = cv2.resize(hwc, (width, height), interpolation=cv2.INTER_LINEAR)
-    labels = (up.argmax(axis=2) if up.ndim == 3 else np.zeros(size, np.int64)).astype(np.uint8)
+    labels = class_map(up) if up.ndim == 3 else np.zeros(size, np.uint8)
     # the confidence map is interpolated from the output resolution (cheaper than a gather)
     conf_low = np.ascontiguousarray(mean.max(axis=0))
     confidence = cv2.resize(conf_low, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)

@@ -34,6 +34,7 @@ class Status(StrEnum):
     TOO_FEW_PNP_INLIERS = "too_few_pnp_inliers"
     FUNDAMENTAL_FAILED = "fundamental_failed"
     TOO_FEW_FUNDAMENTAL_INLIERS = "too_few_fundamental_inliers"
+    OUTRANKED = "outranked"  # fewer matches than an accepted candidate's inliers: not checked
 
 
 def _list(a: np.ndarray | None) -> list[object] | None:

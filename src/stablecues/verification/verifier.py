@@ -124,18 +124,22 @@ class Verifier:
             points = self.points_from_xyz(entry.points3d, entry.features)
         return View(entry.features, entry.fvec, points)
 
-    def verify_entry(self, query: View, entry: Entry) -> Verification:
-        """Verify the query frame against a database entry."""
-        return self.verify(query, self.view_of_entry(entry))
+    def verify_entry(self, query: View, entry: Entry, *, must_beat: int = 0) -> Verification:
+        """Verify the query frame against a database entry (``must_beat``: see :meth:`verify`)."""
+        return self.verify(query, self.view_of_entry(entry), must_beat=must_beat)
 
     # --- the check --------------------------------------------------------------------------
 
-    def verify(self, query: View, candidate: View) -> Verification:
+    def verify(self, query: View, candidate: View, *, must_beat: int = 0) -> Verification:
         """Verify one (query, candidate) pair.
 
         Args:
             query: the current frame.
             candidate: the earlier frame (database entry) proposed as a loop.
+            must_beat: the inliers the pair must reach to matter (those of a loop already
+                accepted for this query). With fewer matches than that it cannot (inliers are
+                a subset of the matches), so the geometry is not run: the result is
+                ``OUTRANKED``, not accepted. 0: always run it.
 
         Returns:
             The decision, the matches, triangles, inliers and relative pose (candidate -> query).
@@ -156,6 +160,10 @@ class Verifier:
         configured = Method(cfg.method)
         method = self._method_for(configured, query, candidate)
         fallback = method is not configured
+        if len(matches) < must_beat:
+            ctx = _Context(query, candidate, matches, method, fallback, t0, timings)
+            return ctx.finish(Status.OUTRANKED, f"{len(matches)} matches cannot reach the {must_beat} "
+                                                "inliers of a loop already accepted (not checked)")
         if fallback and not cfg.fallback:
             ctx = _Context(query, candidate, matches, configured, False, t0, timings)
             return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")

@@ -14,7 +14,7 @@ for binary descriptors of any other width, :func:`descend_float` for float descr
 ``tests/vocabulary/test_vocab_float.py`` checks the two agree). One more kernel serves the
 matcher: :func:`best_two_binary`, each query descriptor's nearest and second-nearest
 candidate under its vocabulary node (``tests/verification/test_verification_matching.py``
-checks it against NumPy).
+checks it against NumPy); and :func:`argmax_channels`, the class map of a segmentation.
 """
 
 from __future__ import annotations
@@ -282,3 +282,20 @@ def best_two_binary(qw: np.ndarray, cw: np.ndarray, qnodes: np.ndarray, qorder: 
         best_j[i] = bj
         best[i] = b1
         second[i] = b2 if b - a > 1 else none
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def argmax_channels(hwc: np.ndarray, out: np.ndarray) -> None:
+    """``out[i, j] = argmax(hwc[i, j, :])`` (the first of equal maxima, as ``np.argmax``), for a
+    (H, W, C) float32 array of finite values; ``out`` is (H, W) uint8."""
+    h, w, c = hwc.shape
+    for i in range(h):
+        for j in range(w):
+            best = hwc[i, j, 0]
+            k = 0
+            for q in range(1, c):
+                v = hwc[i, j, q]
+                if v > best:
+                    best = v
+                    k = q
+            out[i, j] = k

@@ -83,6 +83,7 @@ def _warm(kernels: ModuleType) -> None:
     one = np.zeros(1, np.int64)
     node = np.zeros(1, np.int32)
     kernels.best_two_binary(q, q, node, one, node, one, 256, one.copy(), one.copy(), one.copy())
+    kernels.argmax_channels(np.zeros((1, 1, 2), np.float32), np.zeros((1, 1), np.uint8))
 
 
 def resolve(requested: str) -> str:
