@@ -64,6 +64,7 @@ ABLATIONS = ["mask-only", "triangles-only", "paper-triangles-noise", "dilate", "
 #: issue 11's switches, each turned off from the default (or on, for the ones it leaves off)
 SWITCHES: dict[str, dict[str, Any]] = {
     "default": {},
+    "- run-aware window (a fixed 20 frames)": {"query": {"run_break": None}},
     "- several islands (verify 1, as DLoopDetector)": {"query": {"islands_verified": 1}},
     "- refined entry (the island's best, as DLoopDetector)": {"query": {"refine": 0}},
     "- fundamental thresholds (12 inliers, no ratio, RANSAC)": {

@@ -270,6 +270,12 @@ class LoopDetector:
         metas = self.db.column("meta") if n else []
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
         self._prev_bow: BowVector | None = self.db.entry(n - 1).bow if n else None
+        # scores of the latest entries with their predecessors, and the first entry of the run
+        keep = self.config.query.run_history
+        self._adjacent: list[float] = [float(m["adjacent"]) for m in metas[-keep:]
+                                       if isinstance(m.get("adjacent"), int | float)]
+        self._run_start = int(metas[-1].get("run", 0)) if metas else 0
+        self._continuity: tuple[float, int] = (math.nan, self._run_start)
         self._window_n = 0
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
@@ -299,11 +305,28 @@ class LoopDetector:
         return len(self.db)
 
     # ------------------------------------------------------------------ helpers
+    def _continuity_of(self, bow: BowVector) -> tuple[float, int]:
+        """(the frame's score with the previous entry, the first entry of the run the frame
+        belongs to): a new run, starting at the frame itself, when that score falls below
+        ``run_break`` times the median of the latest adjacent scores."""
+        q = self.config.query
+        n = len(self.db)
+        if self._prev_bow is None:
+            return math.nan, n
+        adjacent = score(bow, self._prev_bow, self.vocabulary.scoring)
+        recent = self._adjacent[-q.run_history:]
+        if q.run_break is not None and len(recent) >= 2 and adjacent < q.run_break * float(np.median(recent)):
+            return adjacent, n
+        return adjacent, self._run_start
+
     def _exclusion_limit(self, timestamp: float) -> int:
         """Entries with id below this may be proposed (the recent window excluded)."""
         q = self.config.query
         n = len(self.db)
-        hi = n - q.exclude_recent
+        window = q.exclude_recent
+        if q.run_break is not None:  # entries before the current run are another place
+            window = min(window, max(q.exclude_recent_min, n - self._continuity[1]))
+        hi = n - window
         if q.exclude_recent_s is not None and math.isfinite(timestamp) and self._timestamps:
             ts = np.asarray(self._timestamps)
             # eligible only when strictly older than the window, as the evaluator counts it
@@ -350,6 +373,7 @@ class LoopDetector:
         prep = self.preparer.prepare(frame, features)
         timings, t = prep.timings, time.perf_counter()
         entry = len(self.db)
+        self._continuity = self._continuity_of(prep.bow)
         found = self._query(prep.bow, frame, entry)
         timings["query"] = (time.perf_counter() - t) * 1e3
         status = found.status
@@ -385,6 +409,7 @@ class LoopDetector:
         (``features`` as in :meth:`process`)."""
         prep = self.preparer.prepare(frame, features)
         entry = len(self.db)
+        self._continuity = self._continuity_of(prep.bow)
         self._store(frame, prep)
         return entry
 
@@ -460,6 +485,13 @@ class LoopDetector:
     def _store(self, frame: Frame, prep: PreparedFrame) -> None:
         t = time.perf_counter()
         meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
+        adjacent, run_start = self._continuity
+        if math.isfinite(adjacent):
+            meta["adjacent"] = round(adjacent, 9)
+            self._adjacent = [*self._adjacent, round(adjacent, 9)][-self.config.query.run_history:]
+        if run_start:
+            meta["run"] = run_start
+        self._run_start = run_start
         if prep.certainty is not None:
             meta["certainty"] = prep.certainty
         if self._window_island is not None:
