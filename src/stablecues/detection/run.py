@@ -307,10 +307,13 @@ def _run_meta(
         semantics = "no masking"
     else:
         semantics = f"{config.masking.mode} mask from the {config.semantic_source}"
+    q = config.query
+    # the smallest window the detector may use: with runs, the window after a cut
+    exclude = q.exclude_recent if q.run_break is None else min(q.exclude_recent, q.exclude_recent_min)
     return {
         "preset": preset_name,
         "frames": n,
-        "exclude": config.query.exclude_recent,
+        "exclude": exclude,
         "score_column": score_column,
         "semantics": semantics,
         **(meta or {}),
