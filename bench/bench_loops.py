@@ -410,15 +410,20 @@ def bench_revisits(network: bool) -> dict[str, Any]:
     return out
 
 
-def bench_speed() -> dict[str, Any]:
+def bench_speed(rounds: int = 3) -> dict[str, Any]:
     """Milliseconds per 480x360 frame on ONE thread (OpenCV and onnxruntime), the CamVid revisit
-    frames of ``train_drives``: the default, with monocular triangulation, with the network (T = 1)."""
+    frames of ``train_drives``: the default, with monocular triangulation, with the network (T = 1).
+
+    The variants run in ``rounds`` interleaved rounds (a shared machine's speed drifts by a
+    quarter within minutes); each figure is the median over the rounds of the round's statistic,
+    with every round's mean beside it."""
     from stablecues.semantics.inference import SegmentationModel
 
     cv2.setNumThreads(1)
     ds = open_dataset(SHARED / "camvid_revisit_dev" / "train_drives" / "frames", format="folder")
     frames = [ds[i] for i in range(len(ds))]
-    out: dict[str, Any] = {"frames": len(frames), "threads": 1, "load_before": list(os.getloadavg())}
+    out: dict[str, Any] = {"frames": len(frames), "threads": 1, "rounds": rounds,
+                           "load_before": list(os.getloadavg())}
     model = SegmentationModel.load(threads=1) if network_available() else None
     variants: dict[str, tuple[str, dict[str, Any]]] = {
         "default (network T = 1)": ("default", {}),
@@ -426,19 +431,25 @@ def bench_speed() -> dict[str, Any]:
         "fast + monocular triangulation": ("fast", {"monocular": {}}),
         "bow (DBoW2 + fundamental)": ("bow", {}),
     }
-    for label, (name, over) in variants.items():
-        cfg = preset(name, {"similarity": False, **over})
-        if (cfg.weighting is not None or cfg.masking is not None) and model is None:
-            continue
-        seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
-        det = LoopDetector(cfg, segmenter=seg)
-        totals = [det.process(f).timings["total"] for f in frames]
-        out[label] = {"mean_ms": round(float(np.mean(totals)), 2),
-                      "median_ms": round(float(np.median(totals)), 2),
-                      "p90_ms": round(float(np.percentile(totals, 90)), 2)}
+    per_round: dict[str, list[dict[str, float]]] = {}
+    for _ in range(rounds):
+        for label, (name, over) in variants.items():
+            cfg = preset(name, {"similarity": False, **over})
+            if (cfg.weighting is not None or cfg.masking is not None) and model is None:
+                continue
+            seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
+            det = LoopDetector(cfg, segmenter=seg)
+            totals = [det.process(f).timings["total"] for f in frames]
+            det.close()
+            per_round.setdefault(label, []).append(
+                {"mean_ms": float(np.mean(totals)), "median_ms": float(np.median(totals)),
+                 "p90_ms": float(np.percentile(totals, 90))})
+    for label, runs in per_round.items():
+        out[label] = {k: round(float(np.median([r[k] for r in runs])), 2) for k in runs[0]}
+        out[label]["round_means_ms"] = [round(r["mean_ms"], 2) for r in runs]
         print(f"  {label:48s} mean {out[label]['mean_ms']:.1f} ms, median {out[label]['median_ms']:.1f} ms, "
-              f"p90 {out[label]['p90_ms']:.1f} ms per frame", flush=True)
-        det.close()
+              f"p90 {out[label]['p90_ms']:.1f} ms per frame (round means {out[label]['round_means_ms']})",
+              flush=True)
     out["load_after"] = list(os.getloadavg())
     return out
 
