@@ -429,6 +429,7 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
         "default (network T = 1)": ("default", {}),
         "fast (the default without the network)": ("fast", {}),
         "fast + monocular triangulation": ("fast", {"monocular": {}}),
+        "fast, 1 island verified (what 5 cost)": ("fast", {"query": {"islands_verified": 1}}),
         "bow (DBoW2 + fundamental)": ("bow", {}),
     }
     per_round: dict[str, list[dict[str, float]]] = {}

@@ -35,9 +35,11 @@ def _stream() -> list[Frame]:
                   image=np.ascontiguousarray(pano[:, x:x + 320])) for i, x in enumerate(xs)]
 
 
-def _config(run_break: float | None) -> object:
-    return preset("fast", {"query": {"exclude_recent": 20, "run_break": run_break, "exclude_recent_min": 3},
-                           "similarity": False})
+def _config(run_break: float | None, score: float | None = 0.1) -> object:
+    """Runs break at a drop to ``run_break`` of the median adjacent score, under ``score``
+    (this wall's cut scores 0.052: a drive back along the same texture)."""
+    return preset("fast", {"query": {"exclude_recent": 20, "run_break": run_break, "run_break_score": score,
+                                     "exclude_recent_min": 3}, "similarity": False})
 
 
 def _decisions(det: LoopDetector, frames: list[Frame]) -> list[tuple[object, ...]]:
@@ -58,6 +60,14 @@ def test_a_cut_starts_a_run_and_the_place_before_it_is_found_again() -> None:
         assert abs(cand - (i - 10)) <= 1  # the same stretch of wall
 
 
+def test_a_drop_above_the_unrelated_level_is_no_cut() -> None:
+    """A camera that starts moving drops its adjacent score sharply, but not to the level of
+    unrelated frames: with the level under the cut's score there is no run, as with no runs."""
+    frames = _stream()
+    fixed = _decisions(LoopDetector(_config(None)), frames)
+    assert _decisions(LoopDetector(_config(0.4, 0.04)), frames) == fixed
+
+
 def test_a_reopened_map_continues_its_runs(tmp_path: Path) -> None:
     frames = _stream()
     whole = _decisions(LoopDetector(_config(0.4)), frames)
@@ -70,7 +80,8 @@ def test_a_reopened_map_continues_its_runs(tmp_path: Path) -> None:
 
 
 def test_run_settings_are_checked() -> None:
-    for bad in ({"run_break": 1.5}, {"run_break": 0.0}, {"run_history": 0}, {"exclude_recent_min": -1}):
+    for bad in ({"run_break": 1.5}, {"run_break": 0.0}, {"run_history": 0}, {"exclude_recent_min": -1},
+                {"run_break_score": 0.0}, {"run_break_score": 2.0}):
         try:
             preset("fast", {"query": bad})
         except ConfigError:

@@ -29,6 +29,10 @@ class QueryConfig:
             are proposed again once ``exclude_recent_min`` newer entries exist. None: the fixed
             window of ``exclude_recent`` entries only.
         run_history: adjacent scores the median of ``run_break`` is taken over.
+        run_break_score: a cut also needs the score with the previous frame under this (the
+            level of unrelated frames), so that a camera starting to move after standing still,
+            whose adjacent score drops from near 1 to a moving camera's, starts no run. None:
+            the relative drop alone.
         exclude_recent_min: a run never shrinks the window below this many entries (nor
             widens it beyond ``exclude_recent``).
         max_results: database results considered per query.
@@ -52,6 +56,7 @@ class QueryConfig:
     exclude_recent_s: float | None = None
     run_break: float | None = None
     run_history: int = 5
+    run_break_score: float | None = None
     exclude_recent_min: int = 0
     max_results: int = 50
     use_nss: bool = True
@@ -71,6 +76,8 @@ class QueryConfig:
             raise ConfigError(f"islands_verified must be >= 1, got {self.islands_verified}")
         if self.run_break is not None and not 0.0 < self.run_break < 1.0:
             raise ConfigError(f"run_break must be in (0, 1) or None, got {self.run_break}")
+        if self.run_break_score is not None and not 0.0 < self.run_break_score <= 1.0:
+            raise ConfigError(f"run_break_score must be in (0, 1] or None, got {self.run_break_score}")
         if self.run_history < 1 or self.exclude_recent_min < 0:
             raise ConfigError("run_history >= 1 and exclude_recent_min >= 0 are required")
 
@@ -172,12 +179,14 @@ _DEFAULT_MASKING: dict[str, Any] = {"min_frame_certainty": 0.8}
 #: the query settings that measured best on the development sets (README, bench/bench_loops.py):
 #: the 5 best islands verified, the best-fitting neighbour of the accepted entry, no temporal window;
 #: the last 20 frames excluded, down to 10 after a cut (a frame scoring under 0.4 times the median
-#: of the last 5 adjacent scores: CamVid's cuts score 0.27-0.68 of it, 1 % of its continuous frames
-#: and of the corridor's under 0.46). A fixed 10-12-frame window finds val_drive's loops too but
-#: lets the dense corridor passes match themselves (tolerance R@100P 0.315 -> 0.018); a window in
-#: seconds emptied short sequences.
+#: of the last 5 adjacent scores, and under 0.05: CamVid's cuts score 0.27-0.68 of the median and
+#: 0.022-0.036, unrelated EuRoC frames 0.012-0.036, while 1 % of CamVid's and the corridor's
+#: continuous frames fall under 0.43-0.46 of it and a drone starting to move after standing still
+#: drops to 0.4 of it at 0.21). A fixed 10-12-frame window finds val_drive's loops too but lets the
+#: dense corridor passes match themselves (tolerance R@100P 0.315 -> 0.018); a window in seconds
+#: emptied short sequences.
 _MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal_k": 1,
-                                   "run_break": 0.4, "exclude_recent_min": 10}
+                                   "run_break": 0.4, "run_break_score": 0.05, "exclude_recent_min": 10}
 
 #: preset name -> (masking preset, verification preset, other overrides, one line of description)
 _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {

@@ -308,14 +308,16 @@ class LoopDetector:
     def _continuity_of(self, bow: BowVector) -> tuple[float, int]:
         """(the frame's score with the previous entry, the first entry of the run the frame
         belongs to): a new run, starting at the frame itself, when that score falls below
-        ``run_break`` times the median of the latest adjacent scores."""
+        ``run_break`` times the median of the latest adjacent scores (and below
+        ``run_break_score``)."""
         q = self.config.query
         n = len(self.db)
         if self._prev_bow is None:
             return math.nan, n
         adjacent = score(bow, self._prev_bow, self.vocabulary.scoring)
         recent = self._adjacent[-q.run_history:]
-        if q.run_break is not None and len(recent) >= 2 and adjacent < q.run_break * float(np.median(recent)):
+        if (q.run_break is not None and len(recent) >= 2 and adjacent < q.run_break * float(np.median(recent))
+                and (q.run_break_score is None or adjacent < q.run_break_score)):
             return adjacent, n
         return adjacent, self._run_start
 
