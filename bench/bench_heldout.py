@@ -27,7 +27,15 @@ from typing import Any
 
 import numpy as np
 
-from bench_loops import MAIN_PRESETS, SHARED, TOP1, _run_eval, make_swapped, network_available
+from bench_loops import (
+    MAIN_PRESETS,
+    SHARED,
+    TOP1,
+    _run_eval,
+    make_swapped,
+    needs_segmentation,
+    network_available,
+)
 from stablecues.datasets import open_dataset
 from stablecues.detection import preset
 from stablecues.groundtruth import load_ground_truth
@@ -72,7 +80,7 @@ def main() -> None:
                                                             f"{tag}_top1", score="raw_score")
             for p in PRESETS:
                 cfg = preset(p)
-                if not network and (cfg.weighting is not None or cfg.masking is not None):
+                if not network and needs_segmentation(cfg):
                     continue
                 res[p] = _run_eval(ds, gt, cfg, Path(tmp), f"{tag}_{p}")
             results[name] = res

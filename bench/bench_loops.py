@@ -83,10 +83,14 @@ TOP1 = {"query": {"use_nss": False, "alpha": 0.0, "temporal_k": 1, "island_gap":
 PROTOCOLS = (("exact", 0), ("tolerance", 2), ("ibow", 2))
 
 
+def needs_segmentation(cfg: Any) -> bool:
+    """Whether a configuration needs segmentation (a mask or semantic weighting)."""
+    return cfg.masking is not None or cfg.weighting is not None
+
+
 def uses_masking(name: str) -> bool:
     """Whether the preset needs segmentation (a mask or semantic weighting)."""
-    cfg = preset(name)
-    return cfg.masking is not None or cfg.weighting is not None
+    return needs_segmentation(preset(name))
 
 
 def network_available() -> bool:
@@ -399,7 +403,7 @@ def bench_revisits(network: bool) -> dict[str, Any]:
                 res[name] = _run_eval(ds, gt, preset(name), Path(tmp), f"{tag}_{name}")
             for label, over in SWITCHES.items():
                 cfg = preset("default", over)
-                if not network and (cfg.weighting is not None or cfg.masking is not None):
+                if not network and needs_segmentation(cfg):
                     continue
                 res[label] = _run_eval(ds, gt, cfg, Path(tmp), f"{tag}_{label}")
             out[set_name] = res
@@ -436,7 +440,7 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     for _ in range(rounds):
         for label, (name, over) in variants.items():
             cfg = preset(name, {"similarity": False, **over})
-            if (cfg.weighting is not None or cfg.masking is not None) and model is None:
+            if needs_segmentation(cfg) and model is None:
                 continue
             seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
             det = LoopDetector(cfg, segmenter=seg)

@@ -117,6 +117,17 @@ def _unit(d: np.ndarray) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
 
+def _checked_kind(a: np.ndarray, b: np.ndarray) -> DescriptorKind:
+    """The descriptors' common kind, both arrays checked against it (one-line InputError)."""
+    kind = DescriptorKind.of(a, "query descriptors")
+    if DescriptorKind.of(b, "candidate descriptors") != kind:
+        raise InputError(f"matching: query descriptors are {kind} but the candidate's are "
+                         f"{DescriptorKind.of(b, 'candidate descriptors')}")
+    check_descriptors(a, "query descriptors", kind)
+    check_descriptors(b, "candidate descriptors", kind)
+    return kind
+
+
 def scaled_distances(
     a: np.ndarray, b: np.ndarray, ia: np.ndarray | None = None, ib: np.ndarray | None = None
 ) -> np.ndarray:
@@ -135,12 +146,7 @@ def scaled_distances(
     Returns:
         int64 distances, (P,) for pairs or (N, M).
     """
-    kind = DescriptorKind.of(a, "query descriptors")
-    if DescriptorKind.of(b, "candidate descriptors") != kind:
-        raise InputError(f"matching: query descriptors are {kind} but the candidate's are "
-                         f"{DescriptorKind.of(b, 'candidate descriptors')}")
-    check_descriptors(a, "query descriptors", kind)
-    check_descriptors(b, "candidate descriptors", kind)
+    kind = _checked_kind(a, b)
     if kind.kind == "float":
         ua, ub = _unit(a), _unit(b)
         if ia is None or ib is None:
@@ -177,15 +183,9 @@ def _binary_kernels(a: np.ndarray, b: np.ndarray, engine: str, cross_check: bool
     if cross_check or engine == "numpy":
         return None
     kind = DescriptorKind.of(a, "query descriptors")
-    if DescriptorKind.of(b, "candidate descriptors") != kind:
-        raise InputError(f"matching: query descriptors are {kind} but the candidate's are "
-                         f"{DescriptorKind.of(b, 'candidate descriptors')}")
-    if kind.kind == "float" or a.shape[1] != 32:
-        return None
-    check_descriptors(a, "query descriptors", kind)
-    check_descriptors(b, "candidate descriptors", kind)
-    if resolve(engine) != "compiled":
-        return None
+    if kind.kind == "float" or kind.size != 32 or resolve(engine) != "compiled":
+        return None  # scaled_distances checks the descriptors on the NumPy path
+    _checked_kind(a, b)
     return compiled_kernels()
 
 
