@@ -145,3 +145,52 @@ def test_header_checksum_covers_every_field() -> None:
     fields = head[: struct.calcsize("<4sHBx16sQQQQI")]
     (crc,) = struct.unpack_from("<I", head, len(fields))
     assert crc == zlib.crc32(fields) and len(head) == HEADER_SIZE
+
+
+def _merge_by_stable_sort(counts: list[np.ndarray], posts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The reference merge: a stable sort of the inputs' concatenation by word."""
+    words = np.concatenate([np.repeat(np.arange(c.size), c) for c in counts])
+    order = np.argsort(words, kind="stable")
+    return np.bincount(words, minlength=counts[0].size), np.concatenate(posts)[order]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_merge_runs_is_a_stable_merge_by_word(engine: str) -> None:
+    if engine == "compiled":
+        pytest.importorskip("numba")
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        n_words = int(rng.integers(1, 40))
+        k = int(rng.integers(1, 6))
+        counts = [rng.integers(0, 4, n_words) * (rng.random(n_words) < 0.6) for _ in range(k)]
+        if trial % 5 == 0:
+            counts[0][:] = 0  # an input with nothing in this chunk
+        counts = [c.astype(np.int64) for c in counts]
+        posts = [rng.integers(-(2**62), 2**62, int(c.sum())).astype("<i8") for c in counts]
+        want = _merge_by_stable_sort(counts, posts)
+        got = segments.merge_runs(counts, posts, engine=engine)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("csr", [False, True])
+def test_merge_drops_removed_entries_and_shifts_ids(csr: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(segments, "CSR_MIN", 100 if csr else 1 << 30)
+    parts = [random_segment(20, seed=s, lo=20 * s) for s in range(3)]
+    alive = np.ones(60, bool)
+    alive[[0, 7, 21, 59]] = False
+    job = MergeJob(parts, lambda lo, hi, c, t: segments.MemorySink(lo, hi, c, N_WORDS, t), N_WORDS,
+                   chunk=97, alive=alive, shift=1000)
+    while not job.step():
+        pass
+    out = job.result
+    assert out is not None and (out.indptr is not None) == csr and (out.lo, out.hi) == (1000, 1060)
+    words = np.repeat(np.arange(N_WORDS), np.diff(out.indptr)) if out.indptr is not None else out.words
+    ent, weights = split(out.postings)
+    # the reference: every posting of a living entry, sorted by word then entry, ids shifted
+    all_words = np.concatenate([p.words for p in parts])  # type: ignore[misc]
+    all_ent, all_w = split(np.concatenate([p.postings for p in parts]))
+    keep = alive[all_ent]
+    order = np.lexsort((all_ent[keep], all_words[keep]))
+    assert np.array_equal(words, all_words[keep][order])
+    assert np.array_equal(ent, all_ent[keep][order] + 1000)
+    assert np.array_equal(weights, all_w[keep][order])

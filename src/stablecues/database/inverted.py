@@ -330,7 +330,7 @@ class InvertedIndex:
             if self.store is not None:
                 sink = self.store.sink(seg.lo, seg.hi, seg.indptr is not None, seg.size)
                 try:
-                    sink.append(_words_of(seg), seg.postings)
+                    sink.append(0, _counts_of(seg, self.n_words), seg.postings)
                     seg = sink.finish(seg.sessions)
                 except BaseException:
                     sink.abort()
@@ -655,11 +655,9 @@ def _size_class(size: int, base: int) -> int:
     return c
 
 
-def _words_of(seg: Segment) -> np.ndarray:
-    if seg.words is not None:
-        return seg.words
-    assert seg.indptr is not None
-    return np.repeat(np.arange(seg.indptr.shape[0] - 1, dtype=np.int32), np.diff(seg.indptr))
+def _counts_of(seg: Segment, n_words: int) -> np.ndarray:
+    """(n_words,) int64 postings of every word in a segment."""
+    return seg.counts(0, seg.size, 0, n_words)
 
 
 def empty_segment(lo: int = 0) -> Segment:

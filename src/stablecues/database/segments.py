@@ -41,6 +41,7 @@ from typing import Protocol
 import numpy as np
 
 from ..errors import DatabaseError
+from ..vocabulary.engine import compiled_kernels, resolve
 
 POSTING = np.dtype([("entry", "<i4"), ("weight", "<f4")])
 SEGMENT_MAGIC = b"SCIX"
@@ -159,7 +160,8 @@ class Segment:
         return self.words[positions].astype(np.int64)
 
     def read(self, a: int, b: int, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Words and postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), copied.
+        """Postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), copied, and
+        the (w1 - w0,) int64 count of each word's run among them.
 
         A persisted segment is read with ``pread``, not through its mapping, so merging does
         not make the index resident in memory.
@@ -168,12 +170,14 @@ class Segment:
             post = _pread(self.path, HEADER_SIZE + 8 * a, b - a)
         else:
             post = np.array(self.postings[a:b])
+        return self.counts(a, b, w0, w1), post
+
+    def counts(self, a: int, b: int, w0: int, w1: int) -> np.ndarray:
+        """(w1 - w0,) int64 postings of each word ``w0 .. w1 - 1`` (at offsets ``a .. b - 1``)."""
         if self.indptr is not None:
-            words = np.repeat(np.arange(w0, w1, dtype=np.int32), np.diff(self.indptr[w0 : w1 + 1]))
-        else:
-            assert self.words is not None
-            words = np.array(self.words[a:b])
-        return words, post
+            return np.diff(self.indptr[w0 : w1 + 1]).astype(np.int64, copy=False)
+        assert self.words is not None
+        return np.bincount(self.words[a:b] - w0, minlength=w1 - w0).astype(np.int64, copy=False)
 
 
 def _pread(path: Path, offset: int, count: int) -> np.ndarray:
@@ -225,11 +229,22 @@ def _indptr(words: np.ndarray, n_words: int) -> np.ndarray:
 class Sink(Protocol):
     """Where a merge writes its output, chunk by chunk in word order."""
 
-    def append(self, words: np.ndarray, postings: np.ndarray) -> None: ...
+    def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
+        """Postings of words ``w0 .. w0 + len(counts) - 1``, ``counts[i]`` of word ``w0 + i``."""
 
     def finish(self, sessions: np.ndarray) -> Segment: ...
 
     def abort(self) -> None: ...
+
+
+def _table(counts: np.ndarray, csr: bool) -> np.ndarray:
+    """A segment's word table from the (W,) count of postings of every word: the CSR indptr
+    (W + 1,) int64, or the (P,) int32 word of every posting."""
+    if csr:
+        indptr = np.zeros(counts.shape[0] + 1, "<i8")
+        np.cumsum(counts, out=indptr[1:])
+        return indptr
+    return np.repeat(np.arange(counts.shape[0], dtype="<i4"), counts)
 
 
 class MemorySink:
@@ -238,32 +253,23 @@ class MemorySink:
     def __init__(self, lo: int, hi: int, csr: bool, n_words: int, capacity: int) -> None:
         self.lo, self.hi, self.csr, self.n_words = lo, hi, csr, n_words
         self.postings = np.empty(capacity, "<i8")
-        self.words: list[np.ndarray] = []
-        self.counts = np.zeros(n_words, np.int64) if csr else None
+        self.counts = np.zeros(n_words, np.int64)
         self.size = 0
 
-    def append(self, words: np.ndarray, postings: np.ndarray) -> None:
+    def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
         n = postings.shape[0]
         self.postings[self.size : self.size + n] = postings
         self.size += n
-        if self.counts is not None:
-            if n:
-                w0 = int(words[0])
-                c = np.bincount(words - w0)
-                self.counts[w0 : w0 + c.size] += c
-        else:
-            self.words.append(words.astype(np.int32, copy=False))
+        self.counts[w0 : w0 + counts.shape[0]] += counts
 
     def finish(self, sessions: np.ndarray) -> Segment:
         post = self.postings[: self.size]
         if self.size < self.postings.shape[0] // 2:
             post = post.copy()
-        if self.counts is not None:
-            indptr = np.zeros(self.n_words + 1, np.int64)
-            np.cumsum(self.counts, out=indptr[1:])
-            return Segment(self.lo, self.hi, post, None, indptr, sessions)
-        words = np.concatenate(self.words) if self.words else np.zeros(0, np.int32)
-        return Segment(self.lo, self.hi, post, words, None, sessions)
+        table = _table(self.counts, self.csr)
+        if self.csr:
+            return Segment(self.lo, self.hi, post, None, table, sessions)
+        return Segment(self.lo, self.hi, post, table, None, sessions)
 
     def abort(self) -> None:
         pass
@@ -293,8 +299,7 @@ class FileSink:
         self.f.write(bytes(HEADER_SIZE))
         self.crc = 0
         self.size = 0
-        self.words: list[np.ndarray] = []
-        self.counts = np.zeros(n_words, np.int64) if csr else None
+        self.counts = np.zeros(n_words, np.int64)
         self._table: np.ndarray | None = None  # tables and sessions as bytes, once built
         self._written = 0
 
@@ -303,16 +308,10 @@ class FileSink:
         self.crc = zlib.crc32(buf, self.crc)
         self.f.write(buf)
 
-    def append(self, words: np.ndarray, postings: np.ndarray) -> None:
+    def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
         self._write(postings)
         self.size += postings.shape[0]
-        if self.counts is not None:
-            if postings.shape[0]:
-                w0 = int(words[0])
-                c = np.bincount(words - w0)
-                self.counts[w0 : w0 + c.size] += c
-        else:
-            self.words.append(words.astype(np.int32, copy=False))
+        self.counts[w0 : w0 + counts.shape[0]] += counts
 
     def finish(self, sessions: np.ndarray) -> Segment:
         while True:
@@ -324,11 +323,7 @@ class FileSink:
         """Write the tables a slice of ``budget`` bytes at a time (a 10^6-word table is 8 MB);
         returns the segment once the file is complete, else None."""
         if self._table is None:
-            if self.counts is not None:
-                table = np.zeros(self.n_words + 1, "<i8")
-                np.cumsum(self.counts, out=table[1:])
-            else:
-                table = np.concatenate(self.words).astype("<i4") if self.words else np.zeros(0, "<i4")
+            table = _table(self.counts, self.csr)
             self._table = np.concatenate([table.view(np.uint8), np.asarray(sessions, "<i4").view(np.uint8)])
             return None
         if self._written < self._table.shape[0]:
@@ -505,36 +500,65 @@ class MergeJob:
             self.result = finish_step(self._sessions)
         return self.result is not None
 
-    def _chunk(self, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
-        words_l, post_l = [], []
+    def _chunk(self, w0: int, w1: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """Words ``w0 .. w1 - 1`` of every input merged: (w0, per-word counts, postings)."""
+        counts_l, post_l = [], []
         for seg in self.inputs:
             a, b = seg.word_range(w0, w1)
             if b > a:
-                w, p = seg.read(a, b, w0, w1)
+                c, p = seg.read(a, b, w0, w1)
                 ent = split(p)[0]
                 if int(ent.min()) < seg.lo or int(ent.max()) >= seg.hi:
                     name = seg.path if seg.path is not None else "an index segment"
                     raise DatabaseError(f"{name}: holds entry ids outside {seg.lo}..{seg.hi - 1} (corrupt)")
-                words_l.append(w)
+                counts_l.append(c)
                 post_l.append(p)
         if not post_l:
-            return np.zeros(0, np.int32), empty_postings()
-        words = np.concatenate(words_l) if len(words_l) > 1 else words_l[0]
-        post = np.concatenate(post_l) if len(post_l) > 1 else post_l[0]
-        if len(post_l) > 1:
-            # the inputs are sorted runs, oldest first: a stable sort merges them and keeps
-            # entry ids ascending within each word
-            order = np.argsort(words, kind="stable")
-            words, post = words[order], post[order]
+            return w0, np.zeros(w1 - w0, np.int64), empty_postings()
+        counts, post = merge_runs(counts_l, post_l)
         if self.alive is not None:
             keep = self.alive[split(post)[0]]
             if not keep.all():
-                words, post = words[keep], post[keep]
+                words = np.repeat(np.arange(w1 - w0, dtype=np.int64), counts)
+                counts = np.bincount(words[keep], minlength=w1 - w0).astype(np.int64, copy=False)
+                post = post[keep]
         if self.shift:
             ent, weights = split(post)
             post = pack_postings(ent.astype(np.int64) + self.shift, weights)
-        return words, post
+        return w0, counts, post
 
     def abort(self) -> None:
         if self.sink is not None and self.result is None:
             self.sink.abort()
+
+
+def merge_runs(counts: Sequence[np.ndarray], postings: Sequence[np.ndarray],
+               engine: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Merge word-sorted runs of postings of adjacent segments, oldest first.
+
+    Args:
+        counts: per input, (W,) int64 postings of each of W consecutive words.
+        postings: per input, its postings (int64) in word order.
+        engine: ``"auto"``, ``"compiled"`` or ``"numpy"`` (as for the vocabulary).
+
+    Returns:
+        (W,) int64 counts of the merge and its postings: every word's run is the runs of that
+        word in input order, so entry ids stay ascending within a word (exactly what a stable
+        sort of the inputs' concatenation by word gives, in O(P + W) instead of O(P log P)).
+    """
+    total = counts[0].copy()
+    for c in counts[1:]:
+        total += c
+    if len(postings) == 1:
+        return total, postings[0]
+    dest = np.cumsum(total) - total  # where each word's run starts in the output
+    out = np.empty(int(total.sum()), "<i8")
+    kernels = compiled_kernels() if resolve(engine) == "compiled" else None
+    for c, p in zip(counts, postings, strict=True):
+        if kernels is not None:
+            kernels.scatter_runs(out, np.ascontiguousarray(p, "<i8"), c, dest)
+        elif p.shape[0]:
+            starts = np.cumsum(c) - c  # where each word's run starts in this input
+            out[np.repeat(dest - starts, c) + np.arange(p.shape[0])] = p
+        dest += c
+    return total, out

@@ -14,7 +14,9 @@ for binary descriptors of any other width, :func:`descend_float` for float descr
 ``tests/vocabulary/test_vocab_float.py`` checks the two agree). One more kernel serves the
 matcher: :func:`best_two_binary`, each query descriptor's nearest and second-nearest
 candidate under its vocabulary node (``tests/verification/test_verification_matching.py``
-checks it against NumPy); and :func:`argmax_channels`, the class map of a segmentation.
+checks it against NumPy); :func:`argmax_channels`, the class map of a segmentation; and
+:func:`scatter_runs`, the copy at the heart of merging index segments
+(``tests/database/test_database_segments.py`` checks it against NumPy).
 """
 
 from __future__ import annotations
@@ -299,3 +301,17 @@ def argmax_channels(hwc: np.ndarray, out: np.ndarray) -> None:
                     best = v
                     k = q
             out[i, j] = k
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def scatter_runs(out: np.ndarray, postings: np.ndarray, counts: np.ndarray, dest: np.ndarray) -> None:
+    """Copy consecutive runs of ``postings`` (``counts[w]`` of them for word ``w``) to
+    ``out[dest[w] : dest[w] + counts[w]]``: one input's part of a merge of index segments
+    (:func:`stablecues.database.segments.merge_runs`)."""
+    src = 0
+    for w in range(counts.shape[0]):
+        c = counts[w]
+        d = dest[w]
+        for j in range(c):
+            out[d + j] = postings[src + j]
+        src += c
