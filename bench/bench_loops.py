@@ -428,7 +428,8 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     frames = [ds[i] for i in range(len(ds))]
     out: dict[str, Any] = {"frames": len(frames), "threads": 1, "rounds": rounds,
                            "load_before": list(os.getloadavg())}
-    model = SegmentationModel.load(threads=1) if network_available() else None
+    models = ({p: SegmentationModel.load(threads=1, precision=p) for p in ("float32", "int8")}
+              if network_available() else {})
     variants: dict[str, tuple[str, dict[str, Any]]] = {
         "default (network T = 1)": ("default", {}),
         "fast (the default without the network)": ("fast", {}),
@@ -440,9 +441,10 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     for _ in range(rounds):
         for label, (name, over) in variants.items():
             cfg = preset(name, {"similarity": False, **over})
+            model = models.get(cfg.segmentation_precision)
             if needs_segmentation(cfg) and model is None:
                 continue
-            seg = (lambda image: model.predict(image, 1)) if model is not None else None  # noqa: E731
+            seg = (lambda image, m=model: m.predict(image, 1)) if model is not None else None  # noqa: E731
             det = LoopDetector(cfg, segmenter=seg)
             totals = [det.process(f).timings["total"] for f in frames]
             det.close()

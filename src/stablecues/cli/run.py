@@ -163,6 +163,6 @@ def _watched_segmenter(config: DetectorConfig, logger: RerunLogger) -> Any | Non
         return None
     from ..semantics.inference import SegmentationModel
 
-    model = SegmentationModel.load()
+    model = SegmentationModel.load(precision=config.segmentation_precision)
     samples = config.segmentation_samples
     return logger.watch_segmenter(lambda image: model.predict(image, samples))

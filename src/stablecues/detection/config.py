@@ -119,6 +119,10 @@ class DetectorConfig:
         semantic_source: "network" (the shipped segmentation network) or "labels" (the frame's
             own label image, e.g. ground truth of a synthetic sequence).
         segmentation_samples: Monte-Carlo samples T (None: the weights' default).
+        segmentation_precision: which of the shipped network's weights run: "float32" (as
+            trained) or "int8" (its static int8 quantisation, ``scripts/quantize_segnet.py``:
+            about half the time a pass, 99.5 % of the pixels given the same class on CamVid
+            ``val``).
         verification: geometric verification, or None to accept every temporally consistent
             candidate (DBoW2 without geometry).
         query: database query, islands and temporal consistency.
@@ -145,6 +149,7 @@ class DetectorConfig:
     masking: MaskingConfig | None = None
     semantic_source: Literal["network", "labels"] = "network"
     segmentation_samples: int | None = None
+    segmentation_precision: Literal["float32", "int8"] = "float32"
     verification: VerificationConfig | None = field(default_factory=VerificationConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     similarity: bool = True
@@ -158,6 +163,9 @@ class DetectorConfig:
             raise ConfigError(f"domain_window: expected >= 1 frames, got {self.domain_window}")
         if self.confidence not in ("inliers", "bow"):
             raise ConfigError(f"confidence: expected 'inliers' or 'bow', got {self.confidence!r}")
+        if self.segmentation_precision not in ("float32", "int8"):
+            raise ConfigError(f"segmentation_precision: expected 'float32' or 'int8', got "
+                              f"{self.segmentation_precision!r}")
         if self.semantic_source not in ("network", "labels"):
             raise ConfigError(
                 f"semantic_source: expected 'network' or 'labels', got {self.semantic_source!r}"

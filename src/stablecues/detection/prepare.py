@@ -331,7 +331,7 @@ class FramePreparer:
             return SegmentationResult(lab, np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
                                       0, np.zeros((NUM_CLASSES, 1, 1), np.float32))
         if self._segmenter is None:
-            model = SegmentationModel.load()
+            model = SegmentationModel.load(precision=self.config.segmentation_precision)
             samples = self.config.segmentation_samples
             self._segmenter = lambda image: model.predict(image, samples)
         seg = self._segmenter(frame.image)

@@ -35,6 +35,8 @@ from .classes import CLASS_NAMES, NUM_CLASSES
 log = logging.getLogger(__name__)
 
 DEFAULT_WEIGHTS = "segnet_camvid.onnx"
+#: the shipped weights of each precision (the int8 file is made by ``scripts/quantize_segnet.py``)
+WEIGHTS = {"float32": DEFAULT_WEIGHTS, "int8": "segnet_camvid_int8.onnx"}
 DEFAULT_INPUT_SIZE = (288, 384)
 DEFAULT_T = 6
 UNCERTAINTY_KINDS = ("variance", "mutual_information")
@@ -81,9 +83,12 @@ class SegmentationResult:
         return float(np.clip((top.mean() - 1.0 / c) / (1.0 - 1.0 / c), 0.0, 1.0))
 
 
-def default_weights_path() -> Path:
-    """Path of the ONNX weights shipped with the package."""
-    return Path(str(importlib.resources.files("stablecues") / "data" / DEFAULT_WEIGHTS))
+def default_weights_path(precision: str = "float32") -> Path:
+    """Path of the ONNX weights shipped with the package: ``"float32"`` (as trained) or
+    ``"int8"`` (their static int8 quantisation)."""
+    if precision not in WEIGHTS:
+        raise ConfigError(f"segmentation precision {precision!r}: expected one of {', '.join(WEIGHTS)}")
+    return Path(str(importlib.resources.files("stablecues") / "data" / WEIGHTS[precision]))
 
 
 def _as_rgb(image: np.ndarray, bgr: bool) -> np.ndarray:
@@ -139,10 +144,11 @@ class SegmentationModel:
 
     @classmethod
     def load(
-        cls, path: str | Path | None = None, *, threads: int | None = None, seed: int = 0
+        cls, path: str | Path | None = None, *, threads: int | None = None, seed: int = 0,
+        precision: str = "float32",
     ) -> SegmentationModel:
-        """Open ONNX weights (the shipped ones when ``path`` is None), inferring on ``threads``
-        threads (None: :func:`set_default_threads`' value, 2 unless changed).
+        """Open ONNX weights (the shipped ones of ``precision`` when ``path`` is None), inferring
+        on ``threads`` threads (None: :func:`set_default_threads`' value, 2 unless changed).
 
         The metadata JSON beside the file (same stem) is read when present; without it the
         shipped defaults (input 288x384, T = 6) apply.
@@ -152,7 +158,7 @@ class SegmentationModel:
         """
         import onnxruntime as ort
 
-        p = default_weights_path() if path is None else Path(path)
+        p = default_weights_path(precision) if path is None else Path(path)
         if not p.is_file():
             raise ModelError(f"{p}: segmentation weights not found (expected an .onnx file)")
         meta: dict[str, Any] = {}
