@@ -77,6 +77,7 @@ SWITCHES: dict[str, dict[str, Any]] = {
     "- dynamic mask (weighting only)": {"masking": None},
     "- semantics (preset fast: no network)": {"weighting": None, "masking": None},
     "hard static mask instead (the paper's)": {"weighting": None, "masking": {"mode": "hard"}},
+    "- int8 network (float32, as trained)": {"segmentation_precision": "float32"},
 }
 TOP1 = {"query": {"use_nss": False, "alpha": 0.0, "temporal_k": 1, "island_gap": 0, "islands_verified": 1},
         "confidence": "bow", "similarity": False}
@@ -431,7 +432,8 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     models = ({p: SegmentationModel.load(threads=1, precision=p) for p in ("float32", "int8")}
               if network_available() else {})
     variants: dict[str, tuple[str, dict[str, Any]]] = {
-        "default (network T = 1)": ("default", {}),
+        "default (network T = 1, int8)": ("default", {}),
+        "default with the float32 network": ("default", {"segmentation_precision": "float32"}),
         "fast (the default without the network)": ("fast", {}),
         "fast + monocular triangulation": ("fast", {"monocular": {}}),
         "fast, 1 island verified (what 5 cost)": ("fast", {"query": {"islands_verified": 1}}),

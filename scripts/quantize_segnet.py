@@ -42,11 +42,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=DATA / "segnet_camvid_int8.onnx")
     args = ap.parse_args()
     try:
-        from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, \
-            quantize_static
+        from onnxruntime.quantization import (
+            CalibrationDataReader,
+            CalibrationMethod,
+            QuantFormat,
+            QuantType,
+            quantize_static,
+        )
         from onnxruntime.quantization.shape_inference import quant_pre_process
     except ImportError as exc:
-        sys.exit(f"quantize_segnet: onnxruntime's quantisation tools need onnx: pip install -e '.[train]' ({exc})")
+        sys.exit(f"quantize_segnet: onnxruntime's quantisation tools need onnx: "
+                 f"pip install -e '.[train]' ({exc})")
     frames = sorted((args.data / "train").glob("*.[jp][pn]g"))[:: args.every]
     if not frames:
         sys.exit(f"quantize_segnet: {args.data / 'train'}: no CamVid train frames found")

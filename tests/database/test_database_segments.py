@@ -170,20 +170,32 @@ def test_merge_runs_is_a_stable_merge_by_word(engine: str) -> None:
         want = _merge_by_stable_sort(counts, posts)
         got = segments.merge_runs(counts, posts, engine=engine)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        buf = np.full(want[1].size + 2, 7, "<i8")  # in place, into a sink's buffer
+        got = segments.merge_runs(counts, posts, engine=engine, out=buf[1:-1])
+        assert np.array_equal(got[1], want[1]) and (got[1].size == 0 or np.shares_memory(got[1], buf))
+        assert buf[0] == 7 and buf[-1] == 7
+    with pytest.raises(ValueError, match="holds 3 postings"):
+        segments.merge_runs([np.ones(2, np.int64)], [np.zeros(2, "<i8")], out=np.zeros(3, "<i8"))
 
 
 @pytest.mark.parametrize("csr", [False, True])
-def test_merge_drops_removed_entries_and_shifts_ids(csr: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("drop", [False, True])
+def test_merge_in_memory_drops_removed_entries_and_shifts_ids(
+    csr: bool, drop: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without removals or shift the merge is written in place into the sink's buffer."""
     monkeypatch.setattr(segments, "CSR_MIN", 100 if csr else 1 << 30)
     parts = [random_segment(20, seed=s, lo=20 * s) for s in range(3)]
     alive = np.ones(60, bool)
-    alive[[0, 7, 21, 59]] = False
+    if drop:
+        alive[[0, 7, 21, 59]] = False
+    shift = 1000 if drop else 0
     job = MergeJob(parts, lambda lo, hi, c, t: segments.MemorySink(lo, hi, c, N_WORDS, t), N_WORDS,
-                   chunk=97, alive=alive, shift=1000)
+                   chunk=97, alive=alive if drop else None, shift=shift)
     while not job.step():
         pass
     out = job.result
-    assert out is not None and (out.indptr is not None) == csr and (out.lo, out.hi) == (1000, 1060)
+    assert out is not None and (out.indptr is not None) == csr and (out.lo, out.hi) == (shift, shift + 60)
     words = np.repeat(np.arange(N_WORDS), np.diff(out.indptr)) if out.indptr is not None else out.words
     ent, weights = split(out.postings)
     # the reference: every posting of a living entry, sorted by word then entry, ids shifted
@@ -192,5 +204,5 @@ def test_merge_drops_removed_entries_and_shifts_ids(csr: bool, monkeypatch: pyte
     keep = alive[all_ent]
     order = np.lexsort((all_ent[keep], all_words[keep]))
     assert np.array_equal(words, all_words[keep][order])
-    assert np.array_equal(ent, all_ent[keep][order] + 1000)
+    assert np.array_equal(ent, all_ent[keep][order] + shift)
     assert np.array_equal(weights, all_w[keep][order])

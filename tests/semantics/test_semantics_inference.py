@@ -158,3 +158,40 @@ def test_class_map_engines_agree_with_argmax_on_ties() -> None:
         assert out.dtype == np.uint8 and out.shape == (37, 53)
         np.testing.assert_array_equal(out, expected)
     assert class_map(scores, "compiled")[5, 7] == 0
+
+
+def _agreement(a: SegmentationModel, b: SegmentationModel, image: np.ndarray) -> tuple[float, float]:
+    ra, rb = a.predict(image, 1), b.predict(image, 1)
+    return float(np.mean(ra.labels == rb.labels)), abs(ra.frame_certainty() - rb.frame_certainty())
+
+
+def test_int8_weights_segment_as_the_float_ones() -> None:
+    """The shipped int8 quantisation gives (nearly) the float network's classes and certainty:
+    on a rendered street frame always, on real CamVid val frames when the data is there."""
+    from stablecues.synthetic import SyntheticTownConfig, generate
+
+    fp32, int8 = SegmentationModel.load(threads=1), SegmentationModel.load(threads=1, precision="int8")
+    assert int8.path.name == "segnet_camvid_int8.onnx" and int8.input_size == fp32.input_size
+    frame = next(iter(generate(SyntheticTownConfig(frames=1, width=480, height=360))))
+    same, dcert = _agreement(fp32, int8, frame.image)
+    assert same > 0.95 and dcert < 0.02, (same, dcert)
+    t = int8.predict(frame.image, 3)  # Monte-Carlo dropout still works: the masks stay float inputs
+    assert t.samples == 3 and float(t.uncertainty.max()) > 0
+    shared = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    val = sorted((shared / "camvid" / "val").glob("*.jpg"))
+    if not val:
+        pytest.skip("../shared/data/camvid/val is absent: the real frames' check did not run")
+    for f in val[::40]:
+        same, dcert = _agreement(fp32, int8, read_rgb(f)[..., ::-1].copy())
+        assert same > 0.98 and dcert < 0.01, (f.name, same, dcert)
+
+
+def test_unknown_precision_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="int4"):
+        SegmentationModel.load(precision="int4")
+    from stablecues.detection import preset
+
+    with pytest.raises(ConfigError, match="segmentation_precision"):
+        preset("default", {"segmentation_precision": "float16"})
+    assert preset("default").segmentation_precision == "int8"
+    assert preset("paper").segmentation_precision == "float32"

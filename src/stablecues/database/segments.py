@@ -259,6 +259,15 @@ class MemorySink:
     def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
         n = postings.shape[0]
         self.postings[self.size : self.size + n] = postings
+        self.placed(w0, counts, n)
+
+    def reserve(self, n: int) -> np.ndarray:
+        """Where the next ``n`` postings go, for a merge to write them in place (then
+        :meth:`placed`): one pass over fresh memory instead of two."""
+        return self.postings[self.size : self.size + n]
+
+    def placed(self, w0: int, counts: np.ndarray, n: int) -> None:
+        """``n`` postings of words ``w0 ..`` written in place at :meth:`reserve`'s view."""
         self.size += n
         self.counts[w0 : w0 + counts.shape[0]] += counts
 
@@ -486,7 +495,13 @@ class MergeJob:
         if self.next < len(self.bounds) - 1:
             w0, w1 = self.bounds[self.next], self.bounds[self.next + 1]
             self.next += 1
-            self.sink.append(*self._chunk(w0, w1))
+            # a memory sink takes the merge in place unless postings are dropped or renumbered
+            reserve = getattr(self.sink, "reserve", None) if self.alive is None and not self.shift else None
+            w0, counts, post = self._chunk(w0, w1, reserve)
+            if reserve is not None:
+                self.sink.placed(w0, counts, post.shape[0])  # type: ignore[attr-defined]
+            else:
+                self.sink.append(w0, counts, post)
             return False
         if self._sessions is None:
             sessions = np.concatenate([np.asarray(s.sessions, np.int32) for s in self.inputs])
@@ -500,8 +515,11 @@ class MergeJob:
             self.result = finish_step(self._sessions)
         return self.result is not None
 
-    def _chunk(self, w0: int, w1: int) -> tuple[int, np.ndarray, np.ndarray]:
-        """Words ``w0 .. w1 - 1`` of every input merged: (w0, per-word counts, postings)."""
+    def _chunk(
+        self, w0: int, w1: int, reserve: Callable[[int], np.ndarray] | None = None
+    ) -> tuple[int, np.ndarray, np.ndarray]:
+        """Words ``w0 .. w1 - 1`` of every input merged: (w0, per-word counts, postings); with
+        ``reserve``, the postings are written to ``reserve(n)`` (no removal or shift then)."""
         counts_l, post_l = [], []
         for seg in self.inputs:
             a, b = seg.word_range(w0, w1)
@@ -515,6 +533,10 @@ class MergeJob:
                 post_l.append(p)
         if not post_l:
             return w0, np.zeros(w1 - w0, np.int64), empty_postings()
+        if reserve is not None:
+            n = sum(p.shape[0] for p in post_l)
+            counts, post = merge_runs(counts_l, post_l, out=reserve(n))
+            return w0, counts, post
         counts, post = merge_runs(counts_l, post_l)
         if self.alive is not None:
             keep = self.alive[split(post)[0]]
@@ -533,13 +555,14 @@ class MergeJob:
 
 
 def merge_runs(counts: Sequence[np.ndarray], postings: Sequence[np.ndarray],
-               engine: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+               engine: str = "auto", out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Merge word-sorted runs of postings of adjacent segments, oldest first.
 
     Args:
         counts: per input, (W,) int64 postings of each of W consecutive words.
         postings: per input, its postings (int64) in word order.
         engine: ``"auto"``, ``"compiled"`` or ``"numpy"`` (as for the vocabulary).
+        out: where to write the merged postings (as many as the inputs hold), or None.
 
     Returns:
         (W,) int64 counts of the merge and its postings: every word's run is the runs of that
@@ -549,10 +572,17 @@ def merge_runs(counts: Sequence[np.ndarray], postings: Sequence[np.ndarray],
     total = counts[0].copy()
     for c in counts[1:]:
         total += c
+    n = int(total.sum())
+    if out is None:
+        if len(postings) == 1:
+            return total, postings[0]
+        out = np.empty(n, "<i8")
+    elif out.shape[0] != n:
+        raise ValueError(f"merge output holds {out.shape[0]} postings, the inputs {n}")
     if len(postings) == 1:
-        return total, postings[0]
+        out[:] = postings[0]
+        return total, out
     dest = np.cumsum(total) - total  # where each word's run starts in the output
-    out = np.empty(int(total.sum()), "<i8")
     kernels = compiled_kernels() if resolve(engine) == "compiled" else None
     for c, p in zip(counts, postings, strict=True):
         if kernels is not None:

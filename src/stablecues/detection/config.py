@@ -200,18 +200,19 @@ _MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal
 _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
     "default": ("dynamic", "default",
                 {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1,
-                 "masking": _DEFAULT_MASKING},
+                 "segmentation_precision": "int8", "masking": _DEFAULT_MASKING},
                 "the measured best: features weighted by the stability of their class, cars and people "
                 "dropped (network, T = 1); the 5 best islands verified (triangles with 3D, else the "
                 "fundamental matrix with inlier count and ratio); no temporal window"),
     "fast": (None, "default", {"query": _MEASURED_QUERY},
              "the default without the network: no semantic weighting or mask (about 15 ms a frame less)"),
     "weighted": (None, "default",
-                 {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1},
+                 {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1,
+                  "segmentation_precision": "int8"},
                  "ablation: the default's weighting without dropping cars and people"),
     "mono-triangles": ("dynamic", "default",
                        {"query": _MEASURED_QUERY, "weighting": {}, "segmentation_samples": 1,
-                        "monocular": {}, "masking": _DEFAULT_MASKING},
+                        "segmentation_precision": "int8", "monocular": {}, "masking": _DEFAULT_MASKING},
                        "the default + monocular 3D: frames without other 3D triangulated against a "
                        "neighbour, loops checked by similar triangles where they can be formed"),
     "paper": ("paper", "paper", {},
