@@ -5,7 +5,10 @@
 Prints the figures and writes bench/results/semantics.json with the keys miou, global_acc,
 class_acc (CamVid test, default T, void ignored), ms_t1 and ms_default_t (median wall time of
 ``SegmentationModel.predict`` on a 480x360 frame, onnxruntime on 2 threads), input_size,
-default_t, the cost of every T, and the per-class IoU.
+default_t, the cost of every T, and the per-class IoU; and under ``int8`` the shipped int8 copy
+(``scripts/quantize_segnet.py``) against the float model: T = 1 time on one thread and on
+``--threads``, CamVid test mIoU at T = 1, and the share of CamVid val pixels both give the same
+class.
 """
 
 from __future__ import annotations
@@ -38,6 +41,30 @@ def time_predict(model: SegmentationModel, image: np.ndarray, t: int, repeats: i
         model.predict(image, t, bgr=False)
         times.append(1000.0 * (time.perf_counter() - start))
     return {"median": float(np.median(times)), "min": float(np.min(times)), "mean": float(np.mean(times))}
+
+
+def compare_int8(args: argparse.Namespace, image: np.ndarray, det_fp32: dict) -> dict:
+    """The int8 copy against the float weights (both shipped)."""
+    out: dict = {}
+    models = {p: {th: SegmentationModel.load(threads=th, precision=p) for th in (1, args.threads)}
+              for p in ("float32", "int8")}
+    for th in (1, args.threads):  # interleaved, so that both see the same machine
+        for p in models:
+            out[f"ms_t1_{p}_{th}_threads"] = time_predict(models[p][th], image, 1, args.repeats)["median"]
+    det = evaluate_model(models["int8"][args.threads], args.data, "test", 1, limit=args.limit)
+    out["test_t1"] = {"miou": det["miou"], "global_acc": det["global_acc"], "class_acc": det["class_acc"]}
+    out["test_t1_float32"] = {k: det_fp32[k] for k in ("miou", "global_acc", "class_acc")}
+    val = load_split(args.data, "val")
+    same = [float(np.mean(models["int8"][1].predict(im, 1, bgr=False).labels
+                          == models["float32"][1].predict(im, 1, bgr=False).labels)) for im in val.images]
+    out["val_same_class"] = {"mean": float(np.mean(same)), "min": float(np.min(same)), "frames": len(same)}
+    out["weights"] = models["int8"][1].path.name
+    out["sha256"] = models["int8"][1].meta.get("sha256")
+    same_pct = 100 * out["val_same_class"]["mean"]
+    print(f"int8: T=1 {out['ms_t1_int8_1_threads']:.1f} ms on 1 thread (float32 "
+          f"{out['ms_t1_float32_1_threads']:.1f}), test mIoU {100 * det['miou']:.1f} % (float32 "
+          f"{100 * det_fp32['miou']:.1f} %), same class as float32 on {same_pct:.2f} % of val pixels")
+    return out
 
 
 def main() -> int:
@@ -93,6 +120,8 @@ def main() -> int:
         f"  class {100 * out['class_acc']:.1f} %"
         f"  ms_t1 {t1:.1f}  ms_T{t_default} {out['ms_default_t']:.1f}  input {model.input_size}"
     )
+    if args.weights is None:
+        out["int8"] = compare_int8(args, image, det)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
     return 0
