@@ -61,3 +61,11 @@ def test_missing_weights_is_one_clear_line(tmp_path: Path, capsys: pytest.Captur
     assert code == 1
     err = capsys.readouterr().err
     assert "gone.onnx" in err and "not found" in err and "Traceback" not in err
+
+
+def test_image_with_the_shipped_int8_weights(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    frame = sorted((shared_path("camvid") / "test").iterdir())[0]
+    out = tmp_path / "seg.png"
+    code = main(["segment", "image", str(frame), "--out", str(out), "--precision", "int8"])
+    assert code == 0 and out.stat().st_size > 10_000
+    assert "/" in capsys.readouterr().out

@@ -34,6 +34,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="CamVid folder")
     e.add_argument("--split", default="test", choices=("train", "val", "test"))
     e.add_argument("--weights", default=None, help="ONNX file (default: the shipped weights)")
+    e.add_argument("--precision", default="float32", choices=("float32", "int8"),
+                   help="which shipped weights without --weights (default float32; the detector's "
+                        "default runs int8)")
     e.add_argument("-T", "--samples", type=int, default=None, help="MC-dropout samples (default: weights')")
     e.add_argument("--limit", type=int, default=None, help="only the first N frames")
     e.add_argument("--threads", type=int, default=2)
@@ -52,6 +55,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     i.add_argument("image", help="image file")
     i.add_argument("--out", required=True, help="PNG to write")
     i.add_argument("--weights", default=None, help="ONNX file (default: the shipped weights)")
+    i.add_argument("--precision", default="float32", choices=("float32", "int8"),
+                   help="which shipped weights without --weights (default float32; the detector's "
+                        "default runs int8)")
     i.add_argument("-T", "--samples", type=int, default=None)
     i.add_argument("--mode", default="dynamic", choices=list(MODES),
                    help="masking mode (default: dynamic, the library's default)")
@@ -103,7 +109,7 @@ def _eval(args: argparse.Namespace) -> int:
     from ..semantics.evaluate import evaluate_model, format_report
     from ..semantics.inference import SegmentationModel
 
-    model = SegmentationModel.load(args.weights, threads=args.threads)
+    model = SegmentationModel.load(args.weights, threads=args.threads, precision=args.precision)
     result = evaluate_model(model, args.data, args.split, args.samples, limit=args.limit, progress=True)
     result["weights"] = str(model.path)
     print(format_report(result))
@@ -153,7 +159,7 @@ def _image(args: argparse.Namespace) -> int:
     config = merge(MaskingConfig(), overrides)
     bgr = read_image(args.image)
     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    model = SegmentationModel.load(args.weights)
+    model = SegmentationModel.load(args.weights, precision=args.precision)
     seg = model.predict(bgr, args.samples)
     features = make_extractor(extractor_from_args(args)).extract(bgr)
     _, report = select_features(features, seg, config)
