@@ -53,6 +53,10 @@ def main() -> None:
     except ImportError as exc:
         sys.exit(f"quantize_segnet: onnxruntime's quantisation tools need onnx: "
                  f"pip install -e '.[train]' ({exc})")
+    if not args.out.parent.is_dir():
+        sys.exit(f"quantize_segnet: {args.out.parent}: no such directory for the output")
+    if args.every < 1:
+        sys.exit(f"quantize_segnet: --every {args.every}: expected a positive frame step")
     frames = sorted((args.data / "train").glob("*.[jp][pn]g"))[:: args.every]
     if not frames:
         sys.exit(f"quantize_segnet: {args.data / 'train'}: no CamVid train frames found")
