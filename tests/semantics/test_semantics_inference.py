@@ -195,3 +195,19 @@ def test_unknown_precision_is_a_config_error() -> None:
         preset("default", {"segmentation_precision": "float16"})
     assert preset("default").segmentation_precision == "int8"
     assert preset("paper").segmentation_precision == "float32"
+
+
+@pytest.mark.parametrize("precision", ["float32", "int8"])
+def test_shipped_weights_match_their_metadata(precision: str) -> None:
+    """Each shipped ONNX file is the one its metadata describes (the int8 one also names the
+    float file it was quantised from)."""
+    import hashlib
+    import json
+
+    path = default_weights_path(precision)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["onnx"] == path.name
+    assert meta["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    if precision == "int8":
+        src = default_weights_path("float32")
+        assert meta["quantization"]["from_sha256"] == hashlib.sha256(src.read_bytes()).hexdigest()
