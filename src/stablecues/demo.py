@@ -34,31 +34,37 @@ class DemoResult:
     loops: dict[str, int] = field(default_factory=dict)
 
 
-def network_works_on(frames: list[Any], min_accuracy: float = 0.6) -> tuple[bool, float]:
+def network_works_on(
+    frames: list[Any], min_accuracy: float = 0.6, precisions: tuple[str, ...] = ("float32",)
+) -> tuple[bool, float]:
     """Whether the shipped segmentation network labels these renders well enough.
 
     Compares its labels with the renderer's on a few frames (pixel accuracy over the classes
-    the renderer draws); returns (usable, accuracy).
+    the renderer draws), for the weights of every precision given; returns (usable, the
+    lowest accuracy).
     """
     import numpy as np
 
     from .errors import ModelError
 
-    try:
-        from .semantics.inference import SegmentationModel
+    accuracies = []
+    for precision in precisions:
+        try:
+            from .semantics.inference import SegmentationModel
 
-        model = SegmentationModel.load()
-    except (ModelError, ImportError):
-        return False, float("nan")
-    correct = total = 0
-    for f in frames:
-        if f.labels is None:
-            continue
-        pred = model.predict(f.image, 1).labels
-        valid = f.labels < 11
-        correct += int(np.count_nonzero((pred == f.labels) & valid))
-        total += int(np.count_nonzero(valid))
-    acc = correct / total if total else 0.0
+            model = SegmentationModel.load(precision=precision)
+        except (ModelError, ImportError):
+            return False, float("nan")
+        correct = total = 0
+        for f in frames:
+            if f.labels is None:
+                continue
+            pred = model.predict(f.image, 1).labels
+            valid = f.labels < 11
+            correct += int(np.count_nonzero((pred == f.labels) & valid))
+            total += int(np.count_nonzero(valid))
+        accuracies.append(correct / total if total else 0.0)
+    acc = min(accuracies, default=0.0)
     return acc >= min_accuracy, acc
 
 
@@ -100,7 +106,8 @@ def run_demo(
     gt = load_ground_truth(seq / "loops.npy")
 
     sample = [dataset[i] for i in range(0, len(dataset), max(len(dataset) // 6, 1))][:6]
-    usable, acc = network_works_on(sample)
+    precisions = tuple(sorted({preset(name).segmentation_precision for name in presets}))
+    usable, acc = network_works_on(sample, precisions=precisions)
     if usable:
         source = "network"
         note = f"semantic masks from the shipped network (pixel accuracy {acc:.0%} on these renders)"

@@ -206,3 +206,11 @@ def test_merge_in_memory_drops_removed_entries_and_shifts_ids(
     assert np.array_equal(words, all_words[keep][order])
     assert np.array_equal(ent, all_ent[keep][order] + shift)
     assert np.array_equal(weights, all_w[keep][order])
+
+
+def test_merge_runs_refuses_counts_that_do_not_match_the_postings() -> None:
+    """A corrupt word table never reaches the compiled copy (which trusts its bounds)."""
+    with pytest.raises(DatabaseError, match="counts 4 postings where 1 are stored"):
+        segments.merge_runs([np.array([3, 1]), np.array([1, 0])], [np.zeros(1, "<i8"), np.zeros(1, "<i8")])
+    with pytest.raises(DatabaseError, match="corrupt"):
+        segments.merge_runs([np.array([2, -1])], [np.zeros(1, "<i8")])

@@ -569,6 +569,11 @@ def merge_runs(counts: Sequence[np.ndarray], postings: Sequence[np.ndarray],
         word in input order, so entry ids stay ascending within a word (exactly what a stable
         sort of the inputs' concatenation by word gives, in O(P + W) instead of O(P log P)).
     """
+    for c, p in zip(counts, postings, strict=True):
+        if int(c.sum()) != p.shape[0] or (c.size and int(c.min()) < 0):
+            # the compiled copy trusts its bounds: a mismatch must never reach it
+            raise DatabaseError(f"an index segment's word table counts {int(c.sum())} postings where "
+                                f"{p.shape[0]} are stored (corrupt)")
     total = counts[0].copy()
     for c in counts[1:]:
         total += c

@@ -121,7 +121,7 @@ class DetectorConfig:
         segmentation_samples: Monte-Carlo samples T (None: the weights' default).
         segmentation_precision: which of the shipped network's weights run: "float32" (as
             trained) or "int8" (its static int8 quantisation, ``scripts/quantize_segnet.py``:
-            about half the time a pass, 99.5 % of the pixels given the same class on CamVid
+            about half the time a pass, 99.6 % of the pixels given the same class on CamVid
             ``val``).
         verification: geometric verification, or None to accept every temporally consistent
             candidate (DBoW2 without geometry).
