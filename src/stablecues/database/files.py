@@ -276,16 +276,8 @@ class LogCheckpointer:
             conn.close()
 
     def checkpoint(self, conn: sqlite3.Connection) -> tuple[int, int]:
-        """One round; returns the log's pages and those copied.
-
-        A pass copies the pages that were in the log when it began; what the writer appends
-        meanwhile stays behind, so passes repeat until one finds only a few new pages (at most
-        ``locked_pages``) appended during the previous one. Those are then copied while
-        ``lock`` holds the next add back, and the writer's next add starts the log over.
-        """
+        """One round; returns the log's pages and those copied."""
         frames = copied = 0
-        prev: int | None = None
-        new: int | None = None
         took = 0.0
         for attempt in range(8):
             t = time.perf_counter()
@@ -294,14 +286,11 @@ class LogCheckpointer:
             if busy:  # the writer was committing: SQLite could not read the log's header
                 time.sleep(0.002 * (attempt + 1))
                 continue
-            # pages appended since the previous pass began (all of them after a restart)
-            new = frames if prev is None or frames < prev else frames - prev
-            prev = frames
-            if attempt > 0 and new <= self.locked_pages:
+            if frames - copied <= self.locked_pages:
                 break
         # the last few pages while adds wait, unless the disk is slow to sync just now (the
         # log then grows a little until a later round)
-        if frames > 0 and new is not None and new <= self.locked_pages and took < self.slow_s:
+        if 0 < frames - copied <= self.locked_pages and took < self.slow_s:
             with self.lock:
                 busy, frames, copied = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
         return frames, copied
