@@ -32,8 +32,8 @@ from bench_loops import (
     SHARED,
     TOP1,
     _run_eval,
+    eval_configs,
     make_swapped,
-    needs_segmentation,
     network_available,
 )
 from stablecues.datasets import open_dataset
@@ -78,11 +78,7 @@ def main() -> None:
             tag = "swapped" if "swapped" in name else "test"
             res["dbow2 top-1, raw score swept"] = _run_eval(ds, gt, preset("bow-nogeom", TOP1), Path(tmp),
                                                             f"{tag}_top1", score="raw_score")
-            for p in PRESETS:
-                cfg = preset(p)
-                if not network and needs_segmentation(cfg):
-                    continue
-                res[p] = _run_eval(ds, gt, cfg, Path(tmp), f"{tag}_{p}")
+            res.update(eval_configs(ds, gt, {p: preset(p) for p in PRESETS}, Path(tmp), tag, network))
             results[name] = res
             for label, r in res.items():
                 if isinstance(r, dict):

@@ -377,6 +377,18 @@ def _run_eval(ds: Any, gt: Any, cfg: Any, work: Path, name: str, score: str = "s
     }
 
 
+def eval_configs(ds: Any, gt: Any, configs: dict[str, Any], work: Path, tag: str, network: bool
+                 ) -> dict[str, dict[str, Any]]:
+    """Each configuration run and scored on one set (label -> :func:`_run_eval`'s figures, run
+    folders ``{tag}_{label}``); those that need segmentation are left out without the network."""
+    out: dict[str, dict[str, Any]] = {}
+    for label, cfg in configs.items():
+        if not network and needs_segmentation(cfg):
+            continue
+        out[label] = _run_eval(ds, gt, cfg, work, f"{tag}_{label}")
+    return out
+
+
 def bench_revisits(network: bool) -> dict[str, Any]:
     """The default, the presets, issue 11's switches and the DBoW2 top-1 baseline per set."""
     out: dict[str, Any] = {}
@@ -398,15 +410,9 @@ def bench_revisits(network: bool) -> dict[str, Any]:
             tag = set_name.split()[0] + ("_swapped" if "swapped" in set_name else "")
             res["dbow2 top-1, raw score swept"] = _run_eval(ds, gt, preset("bow-nogeom", TOP1), Path(tmp),
                                                             f"{tag}_top1", score="raw_score")
-            for name in ["bow", "paper", "bow-nogeom"]:
-                if name == "paper" and not network:
-                    continue
-                res[name] = _run_eval(ds, gt, preset(name), Path(tmp), f"{tag}_{name}")
-            for label, over in SWITCHES.items():
-                cfg = preset("default", over)
-                if not network and needs_segmentation(cfg):
-                    continue
-                res[label] = _run_eval(ds, gt, cfg, Path(tmp), f"{tag}_{label}")
+            configs = {name: preset(name) for name in ["bow", "paper", "bow-nogeom"]}
+            configs.update({label: preset("default", over) for label, over in SWITCHES.items()})
+            res.update(eval_configs(ds, gt, configs, Path(tmp), tag, network))
             out[set_name] = res
             for label, r in res.items():
                 if isinstance(r, dict):

@@ -330,7 +330,7 @@ class InvertedIndex:
             if self.store is not None:
                 sink = self.store.sink(seg.lo, seg.hi, seg.indptr is not None, seg.size)
                 try:
-                    sink.append(0, _counts_of(seg, self.n_words), seg.postings)
+                    sink.append(0, seg.counts(0, seg.size, 0, self.n_words), seg.postings)
                     seg = sink.finish(seg.sessions)
                 except BaseException:
                     sink.abort()
@@ -653,11 +653,6 @@ def _size_class(size: int, base: int) -> int:
         c += 1
         limit *= FAN_IN
     return c
-
-
-def _counts_of(seg: Segment, n_words: int) -> np.ndarray:
-    """(n_words,) int64 postings of every word in a segment."""
-    return seg.counts(0, seg.size, 0, n_words)
 
 
 def empty_segment(lo: int = 0) -> Segment:
