@@ -75,6 +75,52 @@ def test_entry_round_trip(voc: Vocabulary, images: list[np.ndarray]) -> None:
         db.entry(999)
 
 
+def test_memory_entries_equal_stored_ones_and_keep_their_own_copy(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    """A memory database holds its entries' arrays unpacked: what it gives back is what a file
+    gives back (values, dtypes, read-only), whatever the caller does to its arrays afterwards."""
+    mem, disk = Database(voc), Database(voc, tmp_path / "db.sqlite")
+    feats = fake_features(images[3].copy())
+    pts = np.full((feats.keypoints.shape[0], 3), 2.0, np.float32)
+    for db in (mem, disk):
+        fill(db, voc, images[:3], with_3d=True)
+        bow, fvec = voc.transform(feats.descriptors)
+        db.add(bow, fvec, feats, points3d=pts, timestamp=float("nan"), pose=np.eye(4),
+               arrays={"sigma": np.arange(feats.keypoints.shape[0], dtype=np.float64)})
+    feats.descriptors[:] = 0  # the caller reuses its buffers
+    feats.keypoints[:] = -1
+    pts[:] = 0
+    for i in range(4):
+        a, b = mem.entry(i), disk.entry(i)
+        for get in (lambda e: e.bow.words, lambda e: e.bow.weights, lambda e: e.fvec.nodes,
+                    lambda e: e.features.keypoints, lambda e: e.features.descriptors,
+                    lambda e: e.features.octaves, lambda e: e.features.angles,
+                    lambda e: e.features.responses, lambda e: e.features.sizes, lambda e: e.points3d,
+                    lambda e: e.pose):
+            x, y = get(a), get(b)
+            if y is None:
+                assert x is None
+                continue
+            assert x.dtype == y.dtype and x.flags.writeable == y.flags.writeable
+            np.testing.assert_array_equal(x, y)
+        assert a.features.image_size == b.features.image_size and a.meta == b.meta
+        assert a.timestamp == b.timestamp or (np.isnan(a.timestamp) and np.isnan(b.timestamp))
+    np.testing.assert_array_equal(mem.entry(3).features.descriptors, images[3])
+    assert float(mem.entry(3).points3d.max()) == 2.0  # type: ignore[union-attr]
+    np.testing.assert_array_equal(mem.extra_arrays(3)["sigma"], disk.extra_arrays(3)["sigma"])
+    assert mem.column("meta") == disk.column("meta")
+    # removed entries leave both alike
+    for db in (mem, disk):
+        assert db.remove([1]) == 1
+        with pytest.raises(InputError, match="removed"):
+            db.entry(1)
+        with pytest.raises(InputError, match="removed"):
+            db.extra_arrays(1)
+    disk.close()
+    mem.close()
+
+
 def test_persistence_gives_identical_queries(
     voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
 ) -> None:

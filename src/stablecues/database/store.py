@@ -42,7 +42,7 @@ from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -167,6 +167,9 @@ class Database:
         self.readonly = readonly
         self._higher_better = higher_is_better(vocabulary.scoring)
         self._cache: OrderedDict[int, Entry] = OrderedDict()
+        # a memory database holds each entry's arrays as arrays (read-only copies): its SQLite
+        # row keeps the BoW vector (what rebuilds the index) and the scalars, not a packed copy
+        self._held: dict[int, _Held] | None = {} if self.path is None else None
         self._cache_lock = threading.Lock()
         self._add_lock = threading.RLock()
         self._writer: WriterLock | None = None
@@ -377,6 +380,9 @@ class Database:
         index, self._index = self._index, None
         if index is not None:
             index.close()
+        held = getattr(self, "_held", None)
+        if held is not None:
+            held.clear()
         checkpointer, self._checkpointer = self._checkpointer, None
         if checkpointer is not None:
             checkpointer.close()
@@ -469,7 +475,13 @@ class Database:
             raise InputError(f"entry metadata is not JSON-serialisable: {exc}") from exc
         weights = bow.weights.astype(np.float32)
         bow_blob = pack_buffer({"words": bow.words, "weights": weights})
-        payload_blob = pack_buffer(payload)
+        held = None
+        if self._held is not None:
+            bow_arrays = _frozen({"words": bow.words, "weights": weights})
+            held = _Held(float(timestamp), bow_arrays, _frozen(payload), meta_text)
+            payload_blob: bytes | bytearray = _EMPTY_PAYLOAD
+        else:
+            payload_blob = pack_buffer(payload)
         with self._add_lock:
             self._writable()
             index = self.index
@@ -486,6 +498,8 @@ class Database:
                                     "is using this file") from exc
             except sqlite3.DatabaseError as exc:
                 raise DatabaseError(f"{self._where()}: cannot add entry ({exc})") from exc
+            if self._held is not None and held is not None:
+                self._held[eid] = held
             index.add(bow.words, weights, sess)
         return eid
 
@@ -559,6 +573,8 @@ class Database:
                 with self._cache_lock:
                     for i in gone.tolist():
                         self._cache.pop(i, None)
+                        if self._held is not None:
+                            self._held.pop(i, None)
         return int(gone.size)
 
     def _removal_filter(
@@ -698,11 +714,15 @@ class Database:
             if hit is not None:
                 self._cache.move_to_end(eid)
                 return hit
-        ts, bow_blob, payload_blob, meta_text = self._row(eid, "timestamp, bow, payload, meta")
         where = self._where()
         what = f"{where}: entry {eid}"
-        b = unpack_arrays(bow_blob, what)
-        p = unpack_arrays(payload_blob, what)
+        held = self._held.get(eid) if self._held is not None else None
+        if held is not None:
+            ts, b, p, meta_text = held
+        else:
+            ts, bow_blob, payload_blob, meta_text = self._row(eid, "timestamp, bow, payload, meta")
+            b = unpack_arrays(bow_blob, what)
+            p = unpack_arrays(payload_blob, what)
         feats, nodes = _features(p, what)
         meta = meta_value(meta_text, where, eid)
         words = _bow_words(b, eid, where, self.vocabulary.n_words)
@@ -724,8 +744,12 @@ class Database:
 
     def extra_arrays(self, entry_id: int) -> dict[str, np.ndarray]:
         """The extra arrays stored with an entry (``arrays=`` of :meth:`add`)."""
-        (blob,) = self._row(int(entry_id), "payload")
-        p = unpack_arrays(blob, f"{self._where()}: entry {entry_id}")
+        held = self._held.get(int(entry_id)) if self._held is not None else None
+        if held is not None:
+            p = held.payload
+        else:
+            (blob,) = self._row(int(entry_id), "payload")
+            p = unpack_arrays(blob, f"{self._where()}: entry {entry_id}")
         return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
 
     def column(self, name: str) -> list[Any]:
@@ -804,6 +828,26 @@ class Database:
 
 
 # ---------------------------------------------------------------------------- helpers
+class _Held(NamedTuple):
+    """An entry of a memory database as its SQLite row would give it back, unpacked."""
+
+    timestamp: float
+    bow: dict[str, np.ndarray]
+    payload: dict[str, np.ndarray]
+    meta: str
+
+
+def _frozen(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Read-only contiguous copies, as unpacking a stored blob gives (the caller may reuse its
+    arrays)."""
+    out = {}
+    for name, a in arrays.items():
+        c = np.asarray(a).copy()  # C order
+        c.flags.writeable = False
+        out[name] = c
+    return out
+
+
 def _bow_words(arrays: dict[str, np.ndarray], eid: int, where: str, n_words: int) -> np.ndarray:
     words, weights = arrays.get("words"), arrays.get("weights")
     if (words is None or weights is None or words.ndim != 1 or words.shape != weights.shape
