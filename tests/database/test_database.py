@@ -121,6 +121,22 @@ def test_memory_entries_equal_stored_ones_and_keep_their_own_copy(
     mem.close()
 
 
+def test_memory_index_rebuilt_from_its_entries(voc: Vocabulary, images: list[np.ndarray]) -> None:
+    """A memory database's SQLite rows hold no BoW vectors: its index is rebuilt (refresh,
+    repair) from the vectors it holds, removed entries left out."""
+    db = Database(voc)
+    fill(db, voc, images)
+    db.remove([2, 5])
+    queries = [voc.transform(d)[0] for d in images]
+    before = [db.scores(q) for q in queries]
+    db.refresh()
+    db._rebuild(list(db.index.segments))
+    for q, b in zip(queries, before, strict=True):
+        np.testing.assert_array_equal(db.scores(q), b)
+    assert db.scores(queries[2])[2] == 0 and db.query(queries[7], 1)[0].entry_id == 7
+    db.close()
+
+
 def test_persistence_gives_identical_queries(
     voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
 ) -> None:

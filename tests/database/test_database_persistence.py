@@ -30,9 +30,9 @@ def loads(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, int]]:
     seen: list[tuple[int, int]] = []
     real = store._load_segments
 
-    def spy(sql, schema, n_words, lo, hi):  # type: ignore[no-untyped-def]
+    def spy(sql, schema, n_words, lo, hi, held=None):  # type: ignore[no-untyped-def]
         seen.append((lo, hi))
-        return real(sql, schema, n_words, lo, hi)
+        return real(sql, schema, n_words, lo, hi, held)
 
     monkeypatch.setattr(store, "_load_segments", spy)
     return seen

@@ -8,7 +8,7 @@ import pytest
 
 from stablecues.errors import ConfigError, InputError
 from stablecues.features import OrbConfig, OrbExtractor, distribute_quadtree
-from stablecues.features.orb import level_quotas
+from stablecues.features.orb import level_quotas, select_keypoints
 from stablecues.types import ORB_DESCRIPTOR, DescriptorKind
 
 
@@ -114,3 +114,37 @@ def test_bad_inputs_raise() -> None:
         OrbExtractor().extract(textured(), np.zeros((3, 3), np.uint8))
     with pytest.raises(ConfigError):
         OrbConfig(scale_factor=1.0)
+
+
+def test_compiled_keypoint_selection_equals_numpy() -> None:
+    """The compiled pick over all levels equals the NumPy one per level, ties included: integer
+    coordinates on cell borders, equal responses, empty levels, zero quotas, quota carried."""
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(0)
+    for trial in range(400):
+        n = int(rng.integers(0, 300))
+        levels = int(rng.integers(1, 5))
+        w, h = float(rng.integers(1, 200)), float(rng.integers(1, 200))
+        grid_x, grid_y = rng.integers(0, int(w), n), rng.integers(0, int(h), n)
+        x = grid_x.astype(np.float32) if trial % 2 else rng.random(n, np.float32) * np.float32(w)
+        y = grid_y.astype(np.float32) if trial % 3 else rng.random(n, np.float32) * np.float32(h)
+        pts = np.stack([x, y], axis=1)
+        resp = rng.integers(0, 4, n).astype(np.float32) if trial % 2 else rng.random(n, np.float32)
+        octv = rng.integers(0, levels, n).astype(np.int64)
+        quotas = rng.integers(0, 120, levels).astype(np.int64)
+        a = select_keypoints(pts, resp, octv, quotas, (w, h), engine="compiled")
+        b = select_keypoints(pts, resp, octv, quotas, (w, h), engine="numpy")
+        np.testing.assert_array_equal(a, b)
+
+
+def test_extraction_is_the_same_on_both_engines(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("numba")
+    img = textured(360, 480, seed=4)
+    got = {}
+    for engine in ("compiled", "numpy"):
+        monkeypatch.setenv("STABLECUES_ENGINE", engine)
+        got[engine] = OrbExtractor().extract(img)
+    a, b = got["compiled"], got["numpy"]
+    assert len(a) > 500
+    for name in ("keypoints", "descriptors", "octaves", "angles", "responses", "sizes"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

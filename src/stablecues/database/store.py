@@ -344,9 +344,12 @@ class Database:
         for a in range(lo, hi, _LOAD_BLOCK):
             b = min(a + _LOAD_BLOCK, hi)
             seg = loaded.get((a, b))
-            out.extend([seg] if seg is not None else _load_segments(self._sql, self._schema,
-                                                                      self.vocabulary.n_words, a, b))
+            out.extend([seg] if seg is not None else self._segments_of(a, b))
         return out
+
+    def _segments_of(self, lo: int, hi: int) -> list[Segment]:
+        """The index of entries ``lo .. hi - 1`` built from their BoW vectors."""
+        return _load_segments(self._sql, self._schema, self.vocabulary.n_words, lo, hi, self._held)
 
     def refresh(self) -> int:
         """Load entries added (by this or another process) since the last refresh, and follow
@@ -474,13 +477,14 @@ class Database:
         except (TypeError, ValueError) as exc:
             raise InputError(f"entry metadata is not JSON-serialisable: {exc}") from exc
         weights = bow.weights.astype(np.float32)
-        bow_blob = pack_buffer({"words": bow.words, "weights": weights})
         held = None
-        if self._held is not None:
+        if self._held is not None:  # the row keeps the scalars only
             bow_arrays = _frozen({"words": bow.words, "weights": weights})
             held = _Held(float(timestamp), bow_arrays, _frozen(payload), meta_text)
+            bow_blob: bytes | bytearray = _EMPTY_BOW
             payload_blob: bytes | bytearray = _EMPTY_PAYLOAD
         else:
+            bow_blob = pack_buffer({"words": bow.words, "weights": weights})
             payload_blob = pack_buffer(payload)
         with self._add_lock:
             self._writable()
@@ -806,7 +810,7 @@ class Database:
 
     def _rebuild(self, segments: list[Segment]) -> None:
         for seg in segments:
-            new = _load_segments(self._sql, self._schema, self.vocabulary.n_words, seg.lo, seg.hi)
+            new = self._segments_of(seg.lo, seg.hi)
             self.index.replace(seg, new)
 
     def stats(self) -> dict[str, float]:
@@ -885,10 +889,14 @@ def _optional(p: dict[str, np.ndarray], name: str, shape: tuple[int, int], what:
     return a
 
 
-def _load_segments(sql: Sql, schema: Schema, n_words: int, lo: int, hi: int) -> list[Segment]:
+def _load_segments(
+    sql: Sql, schema: Schema, n_words: int, lo: int, hi: int, held: dict[int, _Held] | None = None
+) -> list[Segment]:
     """In-memory segments of entries ``lo .. hi - 1`` read from the entries' BoW vectors
-    (what the index files would hold), one per block of entries."""
+    (what the index files would hold), one per block of entries; a memory database's vectors
+    come from ``held`` (removed entries: none there, an empty vector)."""
     out: list[Segment] = []
+    empty = unpack_arrays(_EMPTY_BOW)
     for a in range(lo, hi, _LOAD_BLOCK):
         b = min(a + _LOAD_BLOCK, hi)
         rows = sql.rows(f"SELECT id, bow, {schema.session_sql} FROM entries WHERE id >= ? AND id < ? "
@@ -897,7 +905,11 @@ def _load_segments(sql: Sql, schema: Schema, n_words: int, lo: int, hi: int) -> 
         for k, (eid, blob, session) in enumerate(rows):
             if eid != a + k:
                 raise DatabaseError(f"{sql.where}: entry ids are not contiguous at id {a + k}")
-            arrays = unpack_arrays(blob, f"{sql.where}: entry {eid}")
+            if held is not None:
+                h = held.get(eid)
+                arrays = h.bow if h is not None else empty
+            else:
+                arrays = unpack_arrays(blob, f"{sql.where}: entry {eid}")
             words = _bow_words(arrays, eid, sql.where, n_words)
             words_l.append(words)
             post_l.append(pack_postings(np.full(words.shape[0], eid, np.int32), arrays["weights"]))

@@ -85,6 +85,8 @@ def _warm(kernels: ModuleType) -> None:
     kernels.best_two_binary(q, q, node, one, node, one, 256, one.copy(), one.copy(), one.copy())
     kernels.argmax_channels(np.zeros((1, 1, 2), np.float32), np.zeros((1, 1), np.uint8))
     kernels.scatter_runs(np.zeros(1, "<i8"), np.zeros(1, "<i8"), np.ones(1, np.int64), np.zeros(1, np.int64))
+    kernels.quadtree_select(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
+                            np.ones(1, np.int64), 1.0)
 
 
 def resolve(requested: str) -> str:
