@@ -7,6 +7,7 @@ import pytest
 
 from conftest import shared_path
 from stablecues.detection import FramePreparer, preset
+from stablecues.errors import ConfigError
 from stablecues.geometry import PinholeCamera, load_euroc_stereo
 from stablecues.geometry.rotations import quat_from_rotvec, quat_to_matrix
 from stablecues.geometry.twoview import (
@@ -61,6 +62,32 @@ def test_too_little_parallax_and_too_few_matches() -> None:
     assert "parallax" in tv.reason or "translation" in tv.reason or "inliers" in tv.reason
     tv = triangulate_two_view(pa[:10], pa[:10], CAM, TwoViewConfig(min_inliers=30))
     assert not tv.ok and "10 matches" in tv.reason and len(tv.points) == 10
+
+
+def test_ransac_iterations_follow_the_share_of_inliers_a_pair_needs() -> None:
+    cfg = TwoViewConfig(min_inliers=30, confidence=0.999, max_iterations=1000, iteration_margin=4.0)
+    counts = [cfg.iterations(m) for m in (5, 30, 31, 37, 50, 78, 200)]
+    assert counts == sorted(counts) and counts[0] == counts[1] == 4 and counts[-1] == 1000
+    # 37 matches with 30 inliers needed: 0.81^5 of the samples are all inliers
+    share = 30 / 37
+    assert counts[3] == int(np.ceil(4.0 * np.log(0.001) / np.log1p(-(share**5))))
+    with pytest.raises(ConfigError):
+        TwoViewConfig(iteration_margin=0.5)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fewer_iterations_give_the_same_pose_when_the_pair_has_its_inliers(seed: int) -> None:
+    """USAC stops by its own rule on a good pair, before the cap: the same points and pose as
+    with 1000 iterations; a pair with too few inliers fails both ways."""
+    _, _, _, pa, pb = _views(seed, n=45, noise=0.4)
+    for m in (45, 36):
+        a = triangulate_two_view(pa[:m], pb[:m], CAM, TwoViewConfig(min_inliers=30))
+        b = triangulate_two_view(pa[:m], pb[:m], CAM, TwoViewConfig(min_inliers=30, iteration_margin=1e9))
+        assert a.ok == b.ok and a.n_inliers == b.n_inliers
+        np.testing.assert_array_equal(a.points.xyz, b.points.xyz)
+    rng = np.random.default_rng(seed)
+    junk = rng.uniform(0, 400, (40, 2))  # 40 random pairs: no 30 of them fit one motion
+    assert not triangulate_two_view(pa[:40], junk, CAM, TwoViewConfig(min_inliers=30)).ok
 
 
 def test_guessed_camera() -> None:
