@@ -107,6 +107,9 @@ def test_memory_entries_equal_stored_ones_and_keep_their_own_copy(
         assert a.features.image_size == b.features.image_size and a.meta == b.meta
         assert a.timestamp == b.timestamp or (np.isnan(a.timestamp) and np.isnan(b.timestamp))
     np.testing.assert_array_equal(mem.entry(3).features.descriptors, images[3])
+    for db in (mem, disk):  # nor can the stored arrays be made writable again
+        with pytest.raises(ValueError):
+            db.entry(3).features.descriptors.flags.writeable = True
     assert float(mem.entry(3).points3d.max()) == 2.0  # type: ignore[union-attr]
     np.testing.assert_array_equal(mem.extra_arrays(3)["sigma"], disk.extra_arrays(3)["sigma"])
     assert mem.column("meta") == disk.column("meta")

@@ -720,7 +720,7 @@ class Database:
                 return hit
         where = self._where()
         what = f"{where}: entry {eid}"
-        held = self._held.get(eid) if self._held is not None else None
+        held = self._held.get(eid) if self._held is not None and 0 <= eid < len(self) else None
         if held is not None:
             ts, b, p, meta_text = held
         else:
@@ -748,7 +748,8 @@ class Database:
 
     def extra_arrays(self, entry_id: int) -> dict[str, np.ndarray]:
         """The extra arrays stored with an entry (``arrays=`` of :meth:`add`)."""
-        held = self._held.get(int(entry_id)) if self._held is not None else None
+        eid = int(entry_id)
+        held = self._held.get(eid) if self._held is not None and 0 <= eid < len(self) else None
         if held is not None:
             p = held.payload
         else:
@@ -844,11 +845,12 @@ class _Held(NamedTuple):
 def _frozen(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Read-only contiguous copies, as unpacking a stored blob gives (the caller may reuse its
     arrays)."""
+    # views of an immutable bytes copy, as a blob's arrays are: they cannot be made writable again
+    # (and 0-d arrays come back 1-d, as packing gives them)
     out = {}
     for name, a in arrays.items():
-        c = np.asarray(a).copy()  # C order
-        c.flags.writeable = False
-        out[name] = c
+        c = np.ascontiguousarray(a)
+        out[name] = np.frombuffer(c.tobytes(), c.dtype).reshape(c.shape)
     return out
 
 

@@ -158,7 +158,8 @@ def select_keypoints(
     lacks corners hands its unused quota down to the next.
 
     Args:
-        points: (N, 2) float32 coordinates; responses: (N,) float32; octaves: (N,) int64 levels.
+        points: (N, 2) coordinates and (N,) responses, both taken as float32 (as ORB gives
+            them); octaves: (N,) int64 levels.
         quotas: (L,) int64 keypoints wanted per level.
         extent: (width, height) of the image.
         engine: ``"auto"``, ``"compiled"`` or ``"numpy"`` (see
@@ -168,13 +169,15 @@ def select_keypoints(
     Returns:
         (M,) int64 indices into ``points``.
     """
-    if resolve(engine) == "compiled":
+    points = np.ascontiguousarray(points, np.float32)
+    responses = np.ascontiguousarray(responses, np.float32)
+    side = float(max(extent[0], extent[1], 1.0))
+    # the compiled loop sorts (cell * n + position) keys in int64: cells stay below 4 side^2
+    fits = 4.0 * side * side * max(points.shape[0], 1) < 2.0**62
+    if fits and resolve(engine) == "compiled":
         kernels = compiled_kernels()
         if kernels is not None:
-            side = float(max(extent[0], extent[1], 1.0))
-            return kernels.quadtree_select(np.ascontiguousarray(points, np.float32),
-                                           np.ascontiguousarray(responses, np.float32),
-                                           np.ascontiguousarray(octaves, np.int64),
+            return kernels.quadtree_select(points, responses, np.ascontiguousarray(octaves, np.int64),
                                            np.ascontiguousarray(quotas, np.int64), side)
     keep: list[np.ndarray] = [np.zeros(0, np.int64)]
     carry = 0

@@ -67,7 +67,7 @@ class TwoViewConfig:
 
     def __post_init__(self) -> None:
         if not (self.threshold_px > 0 and 0 < self.confidence < 1 and self.min_inliers >= 5
-                and self.max_iterations >= 1 and self.iteration_margin >= 1):
+                and self.max_iterations >= 1 and 1 <= self.iteration_margin < math.inf):
             raise ConfigError(f"invalid two-view settings {self}")
 
     def iterations(self, m: int) -> int:

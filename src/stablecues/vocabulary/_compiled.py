@@ -352,8 +352,8 @@ def _strongest_first(rank: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True, boundscheck=False)
 def _monotonic_rank(resp: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Sort ranks of ``-resp[idx]`` (finite float32): the float's bits made monotonic, as
-    unsigned integers (-0.0 and +0.0 alike, as they compare equal)."""
+    """Sort ranks of ``-resp[idx]`` (float32): the float's bits made monotonic, as unsigned
+    integers (-0.0 and +0.0 alike, as they compare equal; NaN after everything)."""
     n = idx.shape[0]
     r = np.empty(n, np.float32)
     for k in range(n):
@@ -362,7 +362,10 @@ def _monotonic_rank(resp: np.ndarray, idx: np.ndarray) -> np.ndarray:
     sign = np.uint64(0x80000000)
     for k in range(n):
         u = rank[k]
-        rank[k] = (u ^ np.uint64(0xFFFFFFFF)) if u & sign else (u | sign)
+        if r[k] != r[k]:  # NaN of either sign: last, as NumPy sorts it
+            rank[k] = np.uint64(0xFFFFFFFF)
+        else:
+            rank[k] = (u ^ np.uint64(0xFFFFFFFF)) if u & sign else (u | sign)
     return rank
 
 
