@@ -150,3 +150,19 @@ def test_extraction_is_the_same_on_both_engines(monkeypatch: pytest.MonkeyPatch)
     assert len(a) > 500
     for name in ("keypoints", "descriptors", "octaves", "angles", "responses", "sizes"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_keypoint_spread_without_the_compiler(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where numba is missing or fails, "auto" runs NumPy and "compiled" says how to get it."""
+    from stablecues.features import orb
+
+    monkeypatch.setitem(orb._KERNEL, "pick", None)
+    pts = np.array([[1, 1], [50, 50], [90, 10]], np.float32)
+    resp = np.array([1.0, 3.0, 2.0], np.float32)
+    args = (pts, resp, np.zeros(3, np.int64), np.array([2]), (100, 100))
+    assert select_keypoints(*args, engine="auto").tolist() == [1, 2]
+    with pytest.raises(ImportError, match="pip install numba"):
+        select_keypoints(*args, engine="compiled")
+    monkeypatch.setenv("STABLECUES_ENGINE", "gpu")
+    with pytest.raises(ConfigError, match="STABLECUES_ENGINE"):
+        select_keypoints(*args)

@@ -17,19 +17,22 @@ spread matters more than raw corner strength. ``distribute="quadtree"`` reproduc
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import attrgetter
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 
+from ..engine import requested
 from ..errors import ConfigError
 from ..imageio import to_grey
 from ..types import ORB_DESCRIPTOR, DescriptorKind, Features
-from ..vocabulary.engine import compiled_kernels, resolve
 from .base import ExtractorConfig, check_mask
+
+log = logging.getLogger(__name__)
 
 #: KeyPoint fields read in C by map(), faster than a comprehension's attribute lookups
 _OCTAVE, _ANGLE, _RESPONSE, _SIZE = (attrgetter(a) for a in ("octave", "angle", "response", "size"))
@@ -150,6 +153,28 @@ def distribute_quadtree(
     return winners[:quota]
 
 
+_KERNEL: dict[str, Any] = {}
+
+
+def quadtree_kernel() -> Any:
+    """The compiled per-level quadtree pick (:mod:`stablecues.features._compiled`), or None
+    when numba is missing or fails here (then NumPy runs); compiled or loaded once."""
+    if "pick" not in _KERNEL:
+        _KERNEL["pick"] = None
+        try:
+            from . import _compiled
+
+            pick = _compiled.quadtree_select
+            pick(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
+                 np.ones(1, np.int64), 1.0)
+            _KERNEL["pick"] = pick
+        except ImportError as exc:
+            log.info("numba is not available (%s): ORB's keypoint spread runs on NumPy", exc)
+        except Exception as exc:  # noqa: BLE001 - any compiler failure means: use NumPy
+            log.warning("compiling ORB's keypoint spread failed (%s): using NumPy", exc)
+    return _KERNEL["pick"]
+
+
 def select_keypoints(
     points: np.ndarray, responses: np.ndarray, octaves: np.ndarray, quotas: np.ndarray,
     extent: tuple[float, float], engine: str = "auto",
@@ -174,11 +199,14 @@ def select_keypoints(
     side = float(max(extent[0], extent[1], 1.0))
     # the compiled loop sorts (cell * n + position) keys in int64: cells stay below 4 side^2
     fits = 4.0 * side * side * max(points.shape[0], 1) < 2.0**62
-    if fits and resolve(engine) == "compiled":
-        kernels = compiled_kernels()
-        if kernels is not None:
-            return kernels.quadtree_select(points, responses, np.ascontiguousarray(octaves, np.int64),
-                                           np.ascontiguousarray(quotas, np.int64), side)
+    choice = requested(engine)
+    kernel = quadtree_kernel() if fits and choice != "numpy" else None
+    if kernel is not None:
+        return kernel(points, responses, np.ascontiguousarray(octaves, np.int64),
+                      np.ascontiguousarray(quotas, np.int64), side)
+    if fits and choice == "compiled":
+        raise ImportError("the compiled keypoint spread needs numba, which is missing or failed to compile "
+                          "here: pip install numba (or use engine='numpy')")
     keep: list[np.ndarray] = [np.zeros(0, np.int64)]
     carry = 0
     for level in range(len(quotas)):

@@ -23,17 +23,15 @@ to make ``"auto"`` mean NumPy in a whole process (it is read when a vocabulary f
 from __future__ import annotations
 
 import logging
-import os
 from types import ModuleType
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..engine import ENGINES, ENV_VARIABLE, check_engine, requested
 
 log = logging.getLogger(__name__)
 
-ENGINES = ("auto", "compiled", "numpy")
-ENV_VARIABLE = "STABLECUES_ENGINE"
+__all__ = ["ENGINES", "ENV_VARIABLE", "check_engine", "compiled_kernels", "resolve"]
 
 _state: dict[str, ModuleType | None] = {}
 
@@ -85,38 +83,25 @@ def _warm(kernels: ModuleType) -> None:
     kernels.best_two_binary(q, q, node, one, node, one, 256, one.copy(), one.copy(), one.copy())
     kernels.argmax_channels(np.zeros((1, 1, 2), np.float32), np.zeros((1, 1), np.uint8))
     kernels.scatter_runs(np.zeros(1, "<i8"), np.zeros(1, "<i8"), np.ones(1, np.int64), np.zeros(1, np.int64))
-    kernels.quadtree_select(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
-                            np.ones(1, np.int64), 1.0)
 
 
-def resolve(requested: str) -> str:
-    """The engine that ``requested`` means here: ``"compiled"`` or ``"numpy"``.
+def resolve(name: str) -> str:
+    """The engine that ``name`` means here: ``"compiled"`` or ``"numpy"``.
 
     Args:
-        requested: ``"auto"``, ``"compiled"`` or ``"numpy"``.
+        name: ``"auto"``, ``"compiled"`` or ``"numpy"``.
 
     Raises:
         ConfigError: an unknown engine name (also in ``STABLECUES_ENGINE``).
         ImportError: ``"compiled"`` asked for explicitly where numba is not available, with
             the command that installs it.
     """
-    check_engine(requested)
-    if requested == "auto":
-        env = os.environ.get(ENV_VARIABLE, "auto").strip().lower() or "auto"
-        if env not in ENGINES:
-            raise ConfigError(f"{ENV_VARIABLE}={env!r}: expected one of {', '.join(ENGINES)}")
-        if env != "auto":
-            return resolve(env)
+    choice = requested(name)
+    if choice == "auto":
         return "compiled" if compiled_kernels() is not None else "numpy"
-    if requested == "compiled" and compiled_kernels() is None:
+    if choice == "compiled" and compiled_kernels() is None:
         raise ImportError(
             "the compiled vocabulary engine needs numba, which is missing or failed to compile "
             "here: pip install numba (or use engine='numpy')"
         )
-    return requested
-
-
-def check_engine(name: str) -> None:
-    """Raise ConfigError unless ``name`` is one of :data:`ENGINES`."""
-    if name not in ENGINES:
-        raise ConfigError(f"vocabulary engine {name!r}: expected one of {', '.join(ENGINES)}")
+    return choice

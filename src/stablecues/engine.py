@@ -1,0 +1,42 @@
+"""Which engine the compiled paths use: ``"auto"``, ``"compiled"`` (numba) or ``"numpy"``.
+
+Several stages have a compiled fast path and a NumPy one that gives identical results (the
+vocabulary transform and the matcher, :mod:`stablecues.vocabulary.engine`; the class map of a
+segmentation; ORB's keypoint spread, :mod:`stablecues.features.orb`). Each takes an engine
+name; ``"auto"`` means the compiled path when numba works here, unless the environment variable
+``STABLECUES_ENGINE`` names another engine for the whole process. This module holds only that
+choice, so that any package can make it without importing another stage.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .errors import ConfigError
+
+__all__ = ["ENGINES", "ENV_VARIABLE", "check_engine", "requested"]
+
+ENGINES = ("auto", "compiled", "numpy")
+ENV_VARIABLE = "STABLECUES_ENGINE"
+
+
+def check_engine(name: str) -> None:
+    """Raise ConfigError unless ``name`` is one of :data:`ENGINES`."""
+    if name not in ENGINES:
+        raise ConfigError(f"vocabulary engine {name!r}: expected one of {', '.join(ENGINES)}")
+
+
+def requested(name: str) -> str:
+    """The engine ``name`` asks for once ``STABLECUES_ENGINE`` is applied to ``"auto"``:
+    ``"auto"`` (take the compiled path when it works), ``"compiled"`` or ``"numpy"``.
+
+    Raises:
+        ConfigError: an unknown engine name, also in the environment variable.
+    """
+    check_engine(name)
+    if name != "auto":
+        return name
+    env = os.environ.get(ENV_VARIABLE, "auto").strip().lower() or "auto"
+    if env not in ENGINES:
+        raise ConfigError(f"{ENV_VARIABLE}={env!r}: expected one of {', '.join(ENGINES)}")
+    return env
