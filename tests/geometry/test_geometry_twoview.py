@@ -127,3 +127,12 @@ def test_euroc_monocular_points_agree_in_shape_with_stereo(current: int, neighbo
     assert 0.1 < scale < 1.0  # the loop pairs are a few decimetres apart
     err = np.linalg.norm(tv.points.xyz[both] * scale - stereo[both], axis=1) / stereo[both, 2]
     assert np.median(err) < 0.08
+
+
+def test_bad_settings_name_the_field() -> None:
+    from stablecues.detection.config import MonocularConfig
+
+    with pytest.raises(ConfigError, match="min_inliers must be >= 5"):
+        TwoViewConfig(min_inliers=2)
+    with pytest.raises(ConfigError, match="^monocular: threshold_px must be > 0, got -1"):
+        MonocularConfig(threshold_px=-1)  # checked with the detector's settings, not at a frame

@@ -8,6 +8,7 @@ from typing import Any, Literal
 from ..config import merge, select_by
 from ..errors import ConfigError
 from ..features import ExtractorConfig, OrbConfig, extractor_config_class
+from ..geometry.twoview import TwoViewConfig
 from ..semantics.masking import MASKING_PRESETS, MaskingConfig
 from ..semantics.weighting import WeightingConfig
 from ..verification.config import VerificationConfig
@@ -104,6 +105,11 @@ class MonocularConfig:
     def __post_init__(self) -> None:
         if self.neighbours < 1 or not 0 < self.ratio <= 1:
             raise ConfigError(f"monocular: neighbours >= 1 and ratio in (0, 1] are required, got {self}")
+        try:  # the two-view settings these give, checked now rather than at the first frame
+            TwoViewConfig(threshold_px=self.threshold_px, min_inliers=self.min_inliers,
+                          min_median_angle_deg=self.min_median_angle_deg)
+        except ConfigError as exc:
+            raise ConfigError(f"monocular: {str(exc).removeprefix('two-view settings: ')}") from None
 
 
 @dataclass(frozen=True)

@@ -66,9 +66,17 @@ class TwoViewConfig:
     iteration_margin: float = 4.0
 
     def __post_init__(self) -> None:
-        if not (self.threshold_px > 0 and 0 < self.confidence < 1 and self.min_inliers >= 5
-                and self.max_iterations >= 1 and 1 <= self.iteration_margin < math.inf):
-            raise ConfigError(f"invalid two-view settings {self}")
+        for ok, what in (
+            (self.threshold_px > 0, f"threshold_px must be > 0, got {self.threshold_px}"),
+            (0 < self.confidence < 1, f"confidence must be in (0, 1), got {self.confidence}"),
+            (self.min_inliers >= 5, f"min_inliers must be >= 5 (five points fix a motion), "
+                                    f"got {self.min_inliers}"),
+            (self.max_iterations >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
+            (1 <= self.iteration_margin < math.inf,
+             f"iteration_margin must be a finite number >= 1, got {self.iteration_margin}"),
+        ):
+            if not ok:
+                raise ConfigError(f"two-view settings: {what}")
 
     def iterations(self, m: int) -> int:
         """RANSAC iterations for ``m`` matches (see ``max_iterations``)."""
