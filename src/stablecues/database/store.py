@@ -10,7 +10,9 @@ few blocks of ``tail_postings``) are read back from the entries. Entries are the
 truth: a missing or damaged index file is rebuilt from them. Index maintenance (sorting the
 latest additions, merging segments) runs in bounded steps, at most one per add (or in a
 thread of its own), so no add waits for a whole merge; the write-ahead log is copied into
-the file by a thread of its own, so no add waits for the disk either.
+the file by a thread of its own, so no add waits for the disk either. A database in memory
+(no path) holds each entry's arrays as read-only NumPy copies instead of packed blobs: its
+SQLite rows keep the scalars, and nothing is packed or unpacked per add or entry.
 
 One writing Database object per file at a time, and any number of readers (other objects or
 processes, ``readonly=True``; they call :meth:`Database.refresh` to see what the writer has
@@ -167,8 +169,8 @@ class Database:
         self.readonly = readonly
         self._higher_better = higher_is_better(vocabulary.scoring)
         self._cache: OrderedDict[int, Entry] = OrderedDict()
-        # a memory database holds each entry's arrays as arrays (read-only copies): its SQLite
-        # row keeps the BoW vector (what rebuilds the index) and the scalars, not a packed copy
+        # a memory database holds each entry's arrays (BoW vector included) as read-only copies;
+        # its SQLite rows keep the scalars only, with placeholder blobs
         self._held: dict[int, _Held] | None = {} if self.path is None else None
         self._cache_lock = threading.Lock()
         self._add_lock = threading.RLock()

@@ -188,7 +188,7 @@ def select_keypoints(
         quotas: (L,) int64 keypoints wanted per level.
         extent: (width, height) of the image.
         engine: ``"auto"``, ``"compiled"`` or ``"numpy"`` (see
-            :mod:`stablecues.vocabulary.engine`): one compiled loop over all levels, or NumPy
+            :mod:`stablecues.engine`): one compiled loop over all levels, or NumPy
             per level; the two pick the same keypoints in the same order.
 
     Returns:
