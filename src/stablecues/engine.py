@@ -10,11 +10,17 @@ choice, so that any package can make it without importing another stage.
 
 from __future__ import annotations
 
+import logging
 import os
+from collections.abc import Callable
+from typing import TypeVar
 
 from .errors import ConfigError
 
-__all__ = ["ENGINES", "ENV_VARIABLE", "check_engine", "requested"]
+__all__ = ["ENGINES", "ENV_VARIABLE", "check_engine", "load_compiled", "requested"]
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 ENGINES = ("auto", "compiled", "numpy")
 ENV_VARIABLE = "STABLECUES_ENGINE"
@@ -40,3 +46,16 @@ def requested(name: str) -> str:
     if env not in ENGINES:
         raise ConfigError(f"{ENV_VARIABLE}={env!r}: expected one of {', '.join(ENGINES)}")
     return env
+
+
+def load_compiled(load: Callable[[], T], what: str) -> T | None:
+    """``load()``, which imports numba and compiles (or loads from the disk cache) some kernels
+    on a tiny input, or None when numba is missing or fails here: then ``what`` runs on NumPy
+    (logged once by the caller's cache of the answer)."""
+    try:
+        return load()
+    except ImportError as exc:
+        log.info("numba is not available (%s): %s runs on NumPy", exc, what)
+    except Exception as exc:  # noqa: BLE001 - any compiler failure means: use NumPy
+        log.warning("compiling %s failed (%s): using NumPy", what, exc)
+    return None

@@ -74,6 +74,7 @@ _LOAD_BLOCK = 4096  # entries per segment when entries are read back from the da
 _CHECKPOINT_PAGES = 256  # SQLite copies its log into the file every ~1 MB: short stalls
 _BACKSTOP_PAGES = 4096  # ... or every 16 MB, if the thread of ours that does it falls behind
 _EMPTY_BOW = pack_arrays({"words": np.zeros(0, np.int32), "weights": np.zeros(0, np.float32)})
+_EMPTY_BOW_ARRAYS = unpack_arrays(_EMPTY_BOW)  # a removed entry's vector in a memory database
 _EMPTY_PAYLOAD = pack_arrays({"fvec": np.zeros(0, np.int32), "image_size": np.zeros(2, np.int32)})
 
 
@@ -722,7 +723,7 @@ class Database:
                 return hit
         where = self._where()
         what = f"{where}: entry {eid}"
-        held = self._held.get(eid) if self._held is not None and 0 <= eid < len(self) else None
+        held = self._held_entry(eid)
         if held is not None:
             ts, b, p, meta_text = held
         else:
@@ -748,15 +749,19 @@ class Database:
                 self._cache.popitem(last=False)
         return entry
 
+    def _held_entry(self, eid: int) -> _Held | None:
+        """A memory database's entry ``eid`` (None: a file, or not a live id)."""
+        return self._held.get(eid) if self._held is not None and 0 <= eid < len(self) else None
+
     def extra_arrays(self, entry_id: int) -> dict[str, np.ndarray]:
         """The extra arrays stored with an entry (``arrays=`` of :meth:`add`)."""
         eid = int(entry_id)
-        held = self._held.get(eid) if self._held is not None and 0 <= eid < len(self) else None
+        held = self._held_entry(eid)
         if held is not None:
             p = held.payload
         else:
-            (blob,) = self._row(int(entry_id), "payload")
-            p = unpack_arrays(blob, f"{self._where()}: entry {entry_id}")
+            (blob,) = self._row(eid, "payload")
+            p = unpack_arrays(blob, f"{self._where()}: entry {eid}")
         return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
 
     def column(self, name: str) -> list[Any]:
@@ -900,7 +905,6 @@ def _load_segments(
     (what the index files would hold), one per block of entries; a memory database's vectors
     come from ``held`` (removed entries: none there, an empty vector)."""
     out: list[Segment] = []
-    empty = unpack_arrays(_EMPTY_BOW)
     for a in range(lo, hi, _LOAD_BLOCK):
         b = min(a + _LOAD_BLOCK, hi)
         rows = sql.rows(f"SELECT id, bow, {schema.session_sql} FROM entries WHERE id >= ? AND id < ? "
@@ -911,7 +915,7 @@ def _load_segments(
                 raise DatabaseError(f"{sql.where}: entry ids are not contiguous at id {a + k}")
             if held is not None:
                 h = held.get(eid)
-                arrays = h.bow if h is not None else empty
+                arrays = h.bow if h is not None else _EMPTY_BOW_ARRAYS
             else:
                 arrays = unpack_arrays(blob, f"{sql.where}: entry {eid}")
             words = _bow_words(arrays, eid, sql.where, n_words)

@@ -26,7 +26,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..engine import requested
+from ..engine import load_compiled, requested
 from ..errors import ConfigError
 from ..imageio import to_grey
 from ..types import ORB_DESCRIPTOR, DescriptorKind, Features
@@ -160,19 +160,17 @@ def quadtree_kernel() -> Any:
     """The compiled per-level quadtree pick (:mod:`stablecues.features._compiled`), or None
     when numba is missing or fails here (then NumPy runs); compiled or loaded once."""
     if "pick" not in _KERNEL:
-        _KERNEL["pick"] = None
-        try:
-            from . import _compiled
-
-            pick = _compiled.quadtree_select
-            pick(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
-                 np.ones(1, np.int64), 1.0)
-            _KERNEL["pick"] = pick
-        except ImportError as exc:
-            log.info("numba is not available (%s): ORB's keypoint spread runs on NumPy", exc)
-        except Exception as exc:  # noqa: BLE001 - any compiler failure means: use NumPy
-            log.warning("compiling ORB's keypoint spread failed (%s): using NumPy", exc)
+        _KERNEL["pick"] = load_compiled(_load_pick, "ORB's keypoint spread")
     return _KERNEL["pick"]
+
+
+def _load_pick() -> Any:
+    from . import _compiled
+
+    pick = _compiled.quadtree_select
+    pick(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
+         np.ones(1, np.int64), 1.0)
+    return pick
 
 
 def select_keypoints(

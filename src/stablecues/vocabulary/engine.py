@@ -27,7 +27,7 @@ from types import ModuleType
 
 import numpy as np
 
-from ..engine import ENGINES, ENV_VARIABLE, check_engine, requested
+from ..engine import ENGINES, ENV_VARIABLE, check_engine, load_compiled, requested
 
 log = logging.getLogger(__name__)
 
@@ -48,17 +48,13 @@ def compiled_kernels() -> ModuleType | None:
 
 
 def _load_kernels() -> ModuleType | None:
-    try:
+    def load() -> ModuleType:
         from . import _compiled
-    except ImportError as exc:
-        log.info("numba is not available (%s): the vocabulary transform runs on NumPy", exc)
-        return None
-    try:
+
         _warm(_compiled)
-    except Exception as exc:  # noqa: BLE001 - any compiler failure means: use NumPy
-        log.warning("compiling the vocabulary kernels failed (%s): using NumPy", exc)
-        return None
-    return _compiled
+        return _compiled
+
+    return load_compiled(load, "the vocabulary transform")
 
 
 def _warm(kernels: ModuleType) -> None:
