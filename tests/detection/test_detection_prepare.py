@@ -17,6 +17,7 @@ from stablecues.geometry import Calibration, NoiseModel, PinholeCamera, load_cal
 from stablecues.imageio import read_image
 from stablecues.semantics.masking import MaskingConfig
 from stablecues.types import Features, Frame
+from stablecues.verification.matching import match_features
 from stablecues.vocabulary import default_vocabulary
 
 
@@ -122,3 +123,41 @@ def test_detector_and_pair_verifier_prepare_alike() -> None:
     assert pair.verifier.camera is calib.left  # keypoints and points refer to the raw left camera
     assert OrbConfig(n_features=2000) == config.features
 
+
+
+def test_an_older_neighbour_is_tried_only_after_too_little_baseline() -> None:
+    """Monocular 3D: the newest neighbour first; an older one when the newer lacked baseline, but
+    not when the newer one had too few matches or matches that hold no one motion."""
+    from stablecues.synthetic import SyntheticTown, SyntheticTownConfig
+
+    town = SyntheticTown(SyntheticTownConfig(frames=36, width=256, height=192, loops=1, seed=1, noise=1.0))
+    images = [town.frame(i, right=False, depth=False, labels=False).image for i in range(2)]
+    cfg = preset("fast", {"monocular": {}})
+
+    def prepared(*newest_last: tuple[Features, object]) -> object:
+        prep = FramePreparer(cfg, default_vocabulary())
+        for feats, fvec in newest_last:
+            prep.remember(feats, fvec)  # type: ignore[arg-type]
+        return prep.prepare(frame(images[1]))
+
+    base = FramePreparer(cfg, default_vocabulary())
+    older, current = (base.prepare(frame(im)) for im in images)
+    good = prepared((older.features, older.fvec))  # the older frame alone gives points
+    assert good.points is not None and good.points_source == "mono-guessed-focal"  # type: ignore[attr-defined]
+    assert int(good.points.valid.sum()) >= 30  # type: ignore[attr-defined]
+
+    # the frame itself as the newest neighbour: no baseline at all, so the older one is tried
+    same = prepared((older.features, older.fvec), (current.features, current.fvec))
+    np.testing.assert_array_equal(same.points.xyz, good.points.xyz)  # type: ignore[attr-defined]
+
+    # an unrelated newest neighbour (too few matches) ends the search
+    other = base.prepare(frame(textured(5, (192, 256))))
+    assert len(match_features(current.features, other.features, current.fvec, other.fvec, ratio=0.75)) < 30
+    assert prepared((older.features, older.fvec), (other.features, other.fvec)).points is None  # type: ignore[attr-defined]
+
+    # so does one whose matches fit no one motion: 40 of the frame's own descriptors at random places
+    pick = np.arange(40)
+    spots = np.random.default_rng(0).uniform(0, 190, (40, 2)).astype(np.float32)
+    shuffled = (dataclasses.replace(current.features.subset(pick), keypoints=spots),
+                dataclasses.replace(current.fvec, nodes=current.fvec.nodes[pick]))
+    assert prepared((older.features, older.fvec), shuffled).points is None  # type: ignore[attr-defined]

@@ -136,3 +136,16 @@ def test_bad_settings_name_the_field() -> None:
         TwoViewConfig(min_inliers=2)
     with pytest.raises(ConfigError, match="^monocular: threshold_px must be > 0, got -1"):
         MonocularConfig(threshold_px=-1)  # checked with the detector's settings, not at a frame
+
+
+def test_a_failure_says_whether_more_baseline_may_help() -> None:
+    """Too little parallax or translation: a neighbour further back may do; too few matches or
+    matches that fit no one motion: it will not."""
+    x, rot, _, pa, pb = _views(0)
+    assert triangulate_two_view(pa, pb, CAM).ok
+    xb = (x @ rot.T + np.array([1e-4, 0.0, 0.0])) @ CAM.K.T  # the camera hardly moved
+    still = triangulate_two_view(pa, xb[:, :2] / xb[:, 2:], CAM)
+    assert not still.ok and still.baseline_limited
+    junk = np.random.default_rng(0).uniform(0, 400, (40, 2))
+    assert not triangulate_two_view(pa[:40], junk, CAM, TwoViewConfig(min_inliers=30)).baseline_limited
+    assert not triangulate_two_view(pa[:10], pb[:10], CAM, TwoViewConfig(min_inliers=30)).baseline_limited

@@ -89,7 +89,9 @@ class MonocularConfig:
 
     Attributes:
         neighbours: how many of the latest frames of the stream are tried, newest first; the
-            first with enough parallax and essential-matrix inliers gives the points.
+            first with enough parallax and essential-matrix inliers gives the points. An older
+            one is tried only when the newer ones lacked baseline (parallax, or points
+            triangulated well), not when they had too few matches or no one motion held them.
         ratio: Lowe's ratio of the matches with the neighbour (frame-to-frame: strict).
         min_inliers: essential-matrix inliers a neighbour needs.
         min_median_angle_deg: median triangulation angle a neighbour needs (parallax).

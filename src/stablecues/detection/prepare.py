@@ -394,7 +394,12 @@ class FramePreparer:
     def _triangulate(
         self, features: Features, fvec: FeatureVector, calib: Calibration | None
     ) -> tuple[Points3D | None, str | None, Calibration | None]:
-        """Points of the features from the newest neighbour with enough parallax, or None."""
+        """Points of the features from the newest neighbour with enough parallax, or None.
+
+        Neighbours are tried newest first while the newer ones fail for too little baseline;
+        a neighbour with too few matches, or whose matches hold no one motion, ends the search
+        (on the CamVid revisit sets, CamVid train and val, the corridor, the desk loop and KITTI,
+        no older neighbour ever triangulated after either)."""
         mono = self.config.monocular
         if mono is None or not len(features) or not self._recent:
             return None, None, calib
@@ -404,13 +409,15 @@ class FramePreparer:
         for nb_features, nb_fvec in self._recent:
             matches = match_features(features, nb_features, fvec, nb_fvec, ratio=mono.ratio)
             if len(matches) < mono.min_inliers:
-                continue
+                break  # an older neighbour shares fewer features still
             two = triangulate_two_view(
                 features.keypoints[matches.query], nb_features.keypoints[matches.candidate],
                 cam_calib.left, settings, octaves=features.octaves[matches.query],
             )
             if not two.ok:
-                continue
+                if two.baseline_limited:
+                    continue  # too little baseline: an older neighbour has more
+                break  # the matches hold no one motion: an older neighbour's would hold fewer
             points = Points3D.empty(len(features))
             xyz, sd, sl = points.xyz.copy(), points.sigma_depth.copy(), points.sigma_lateral.copy()
             xyz[matches.query], sd[matches.query], sl[matches.query] = (
