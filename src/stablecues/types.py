@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeAlias, cast
 
@@ -392,11 +393,19 @@ class FeatureVector:
     def __len__(self) -> int:
         return int(self.nodes.shape[0])
 
+    @cached_property
+    def order(self) -> np.ndarray:
+        """(N,) int64 read-only feature indices sorted by node, stably (computed once: a frame's
+        direct index is matched against several neighbours and candidates)."""
+        order = np.argsort(self.nodes, kind="stable")
+        order.flags.writeable = False
+        return order
+
     def groups(self) -> dict[int, np.ndarray]:
         """``node id -> (K,) int64 indices of the features under it``, in feature order."""
         if self.nodes.size == 0:
             return {}
-        order = np.argsort(self.nodes, kind="stable")
+        order = self.order
         sorted_nodes = self.nodes[order]
         cuts = np.flatnonzero(np.diff(sorted_nodes)) + 1
         starts = np.concatenate(([0], cuts))

@@ -124,6 +124,11 @@ def test_bow_vector_and_direct_index(small_voc: tuple[Vocabulary, list[np.ndarra
     np.testing.assert_array_equal(f1.nodes[ok & deep], voc.parents[leaves[ok & deep]])
     groups = f1.groups()
     assert sum(len(ix) for ix in groups.values()) == int(ok.sum())
+    # the nodes' stable sorting order, computed once and read-only (matching reuses it)
+    np.testing.assert_array_equal(f1.order, np.argsort(f1.nodes, kind="stable"))
+    assert f1.order is f1.order and not f1.order.flags.writeable
+    for node, ix in groups.items():
+        assert (np.diff(ix) > 0).all() and (f1.nodes[ix] == node).all()
 
 
 def test_weightings() -> None:

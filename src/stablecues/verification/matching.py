@@ -190,16 +190,16 @@ def _binary_kernels(a: np.ndarray, b: np.ndarray, engine: str, cross_check: bool
 
 
 def _best_two_compiled(
-    kernels: Any, a: np.ndarray, b: np.ndarray, query_nodes: np.ndarray, cand_nodes: np.ndarray
+    kernels: Any, a: np.ndarray, b: np.ndarray, query_fvec: FeatureVector, cand_fvec: FeatureVector
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per query feature: its nearest candidate (-1: none), best and second-best distance,
     among the candidates under its node; what :func:`_ragged_pairs` and
     :func:`_best_two_grouped` give, in one compiled loop."""
-    corder = np.argsort(cand_nodes, kind="stable")
-    n = query_nodes.shape[0]
+    corder = cand_fvec.order
+    n = len(query_fvec)
     best_j, best, second = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
-    kernels.best_two_binary(as_words(a), as_words(b), query_nodes, np.argsort(query_nodes),
-                            cand_nodes[corder], corder, _NONE, best_j, best, second)
+    kernels.best_two_binary(as_words(a), as_words(b), query_fvec.nodes, query_fvec.order,
+                            cand_fvec.nodes[corder], corder, _NONE, best_j, best, second)
     return best_j, best, second
 
 
@@ -280,7 +280,7 @@ def match_features(
         kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine, cross_check)
         if kernels is not None:
             best_j, best, second = _best_two_compiled(
-                kernels, query.descriptors, candidate.descriptors, query_fvec.nodes, candidate_fvec.nodes)
+                kernels, query.descriptors, candidate.descriptors, query_fvec, candidate_fvec)
             has = best_j >= 0
         else:
             qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
