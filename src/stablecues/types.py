@@ -439,6 +439,8 @@ class Entry:
         timestamp: seconds, or NaN when unknown.
         pose: (4, 4) float64 camera-to-world pose, or None.
         meta: free-form JSON-serialisable metadata (e.g. the image path).
+        arrays: the extra named arrays stored with the entry (``Database.add(arrays=...)``),
+            e.g. ``"weights"``, each feature's semantic stability weight.
     """
 
     entry_id: int
@@ -449,6 +451,7 @@ class Entry:
     timestamp: float = float("nan")
     pose: np.ndarray | None = None
     meta: dict[str, object] = field(default_factory=dict)
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 
-from stablecues.detection import FramePreparer, preset
+from stablecues.detection import FramePreparer, LoopDetector, preset
 from stablecues.types import Frame
 from stablecues.vocabulary import default_vocabulary
 
@@ -40,3 +41,27 @@ def test_semantic_weighting_reweights_the_bow_and_keeps_every_feature() -> None:
     ratio = weighted.bow.weights / plain.bow.weights
     assert ratio[only_right].mean() < 0.6 * ratio[only_left].mean()  # cars count less than buildings
     assert "segment" in weighted.timings
+
+
+def test_feature_weights_travel_with_the_view_and_the_entry(tmp_path: Path) -> None:
+    """The weights that weight the BoW vector also order the matches for triangles: the prepared
+    frame hands them to the verifier and the map keeps them with the entry, in the same float32
+    a reopened map gives back."""
+    img = textured(4)
+    labels = np.full(img.shape, 1, np.uint8)
+    labels[:, img.shape[1] // 2:] = 8  # Car on the right
+    cfg = dataclasses.replace(preset("weighted"), semantic_source="labels")
+    prep = FramePreparer(cfg, default_vocabulary()).prepare(frame(img, labels=labels))
+    assert prep.weights is not None and prep.weights.dtype == np.float32
+    assert prep.weights.shape == (len(prep.features),) and prep.view.weights is prep.weights
+    right = prep.features.keypoints[:, 0] >= img.shape[1] // 2
+    assert prep.weights[right].mean() < 0.6 * prep.weights[~right].mean()
+    assert FramePreparer(preset("fast"), default_vocabulary()).prepare(frame(img)).weights is None
+
+    det = LoopDetector(cfg, database=tmp_path / "map.sqlite")
+    det.process(frame(img, labels=labels))
+    det.close()
+    reopened = LoopDetector(cfg, database=tmp_path / "map.sqlite")
+    stored = reopened.db.entry(0).arrays["weights"]
+    np.testing.assert_array_equal(stored, prep.weights)
+    reopened.close()

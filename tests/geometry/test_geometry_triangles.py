@@ -154,3 +154,21 @@ def test_similar_shapes_at_another_scale_do_not_agree() -> None:
     config = TriangleConfig(tolerance="similar", n_triangles=3, min_side_sigma=0.0, min_angle_deg=0.0)
     res = check_triangles(q3, _relative(_noisy(cand, 2)), config)
     assert [t.agree for t in res.triangles] == [True, False, True]
+
+
+def test_matches_enter_triangles_in_the_order_given() -> None:
+    """``order`` decides which matches form the triangles; positions still refer to the list."""
+    cand = _scene(seed=4)
+    query = _rigid(cand, 9)
+    query[:30] += np.random.default_rng(2).normal(size=(30, 3)) * 0.5  # the first 30 moved
+    q, c = NOISE.points(query), NOISE.points(cand)
+    cfg = TriangleConfig(n_triangles=5)
+    assert check_triangles(q, c, cfg).n_agree <= 1
+    last = np.r_[30:60, 0:30]  # the moved ones last
+    res = check_triangles(q, c, cfg, order=last)
+    assert res.n_agree == 5 and all(min(t.matches) >= 30 for t in res.triangles)
+    same = check_triangles(q, c, cfg, order=np.arange(60))
+    assert [t.matches for t in same.triangles] == [t.matches for t in check_triangles(q, c, cfg).triangles]
+    for bad in (np.arange(59), np.r_[0, 0:59], np.arange(1, 61)):
+        with pytest.raises(InputError, match="permutation"):
+            check_triangles(q, c, cfg, order=bad)

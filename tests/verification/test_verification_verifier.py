@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stablecues.config import merge
-from stablecues.errors import ConfigError
+from stablecues.errors import ConfigError, InputError
 from stablecues.geometry import NoiseModel, PinholeCamera, Points3D, rotation_angle_deg
 from stablecues.geometry.pose import _so3_exp
 from stablecues.types import BowVector, Entry, Features, FeatureVector
@@ -213,3 +213,59 @@ def test_monocular_candidate_without_query_points_falls_back_to_fundamental() ->
     q, c, _, _ = _scene(8)
     res = Verifier(preset("default"), camera=CAM, noise=NOISE).verify(View(q.features), _monocular(c, 2.0))
     assert res.method is Method.FUNDAMENTAL and res.fallback
+
+
+def _moving_objects(seed: int = 3, n: int = 120, moving: int = 30) -> tuple[View, View]:
+    """Two views of a scene whose first ``moving`` features moved between the visits, each its own
+    way (people, cars), with the closest descriptors of all and weights of a dynamic class."""
+    rng = np.random.default_rng(seed)
+    xc = np.c_[rng.uniform(-1.2, 1.2, (n, 2)), rng.uniform(2, 5, n)]
+    xq = xc + np.array([0.1, 0.0, 0.2])
+    moved = np.arange(n) < moving
+    xq[moved] += rng.normal(size=(moving, 3)) * 0.5
+    desc_c = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    desc_q = desc_c.copy()
+    for row in desc_q[~moved]:  # 10 bits flipped on the static features, none on the moving ones
+        idx = rng.choice(256, 10, replace=False)
+        np.bitwise_xor.at(row, idx // 8, (1 << (idx % 8)).astype(np.uint8))
+    weights = np.where(moved, 0.3, 1.2).astype(np.float32)
+    q = View(_features(CAM.project(xq), desc_q), None, NOISE.points(xq), weights)
+    c = View(_features(CAM.project(xc), desc_c), None, NOISE.points(xc), weights)
+    return q, c
+
+
+def test_stable_cues_enter_the_triangles_first() -> None:
+    """Matches on moving objects have the closest descriptors, so by distance they make the first
+    triangles, which disagree; ranked with the features' stability weights, the static
+    structure makes them and the loop is accepted."""
+    q, c = _moving_objects()
+    cfg = merge(preset("default"), {"acceptance": "all", "n_triangles": 5})
+    ranked = Verifier(cfg, camera=CAM, noise=NOISE).verify(q, c)
+    plain = Verifier(merge(cfg, {"stable_ranking": False}), camera=CAM, noise=NOISE).verify(q, c)
+    assert ranked.accepted and not plain.accepted
+    vertices = [ranked.matches.query[list(t.matches)] for t in ranked.triangles]
+    assert len(vertices) == 5 and all((v >= 30).all() for v in vertices)  # no moving feature
+    assert all((plain.matches.query[list(t.matches)] < 30).all() for t in plain.triangles[:5])
+    # equal weights: the distance order, the same triangles as without weights
+    ones = np.ones(len(q.features), np.float32)
+    same = Verifier(cfg, camera=CAM, noise=NOISE).verify(View(q.features, None, q.points, ones),
+                                                         View(c.features, None, c.points, ones))
+    assert [t.matches for t in same.triangles] == [t.matches for t in plain.triangles]
+
+
+def test_feature_weights_are_checked() -> None:
+    q, c = _moving_objects()
+    for bad in (np.ones(3, np.float32), -np.ones(len(q.features)), np.ones(len(q.features), np.int64)):
+        with pytest.raises(InputError, match="feature weights"):
+            View(q.features, None, q.points, bad)
+    assert c.points is not None
+    fvec = FeatureVector(np.zeros(len(c.features), np.int32), 3)
+    entry = Entry(entry_id=4, bow=BowVector.empty(), fvec=fvec, features=c.features, points3d=c.points.xyz,
+                  arrays={"weights": np.ones(5, np.float32)})
+    with pytest.raises(InputError, match="database entry 4: view: feature weights"):
+        Verifier(camera=CAM, noise=NOISE).view_of_entry(entry)
+    assert c.weights is not None
+    good = Entry(entry_id=4, bow=BowVector.empty(), fvec=fvec, features=c.features, points3d=c.points.xyz,
+                 arrays={"weights": c.weights})
+    view = Verifier(camera=CAM, noise=NOISE).view_of_entry(good)
+    assert view.weights is c.weights

@@ -742,6 +742,7 @@ class Database:
             timestamp=timestamp_value(ts, where, eid),
             pose=_optional(p, "pose", (4, 4), what),
             meta=meta if meta is not None else {},
+            arrays=_extras(p),
         )
         with self._cache_lock:
             self._cache[eid] = entry
@@ -762,7 +763,7 @@ class Database:
         else:
             (blob,) = self._row(eid, "payload")
             p = unpack_arrays(blob, f"{self._where()}: entry {eid}")
-        return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
+        return _extras(p)
 
     def column(self, name: str) -> list[Any]:
         """One scalar column of every entry id in order: "timestamp" (NaN when unknown),
@@ -889,6 +890,11 @@ def _features(p: dict[str, np.ndarray], what: str) -> tuple[Features, np.ndarray
     if n and len(feats) and len(feats) != n:
         raise DatabaseError(f"{what}: {len(feats)} features but {n} direct-index nodes")
     return feats, nodes
+
+
+def _extras(p: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The extra arrays of an unpacked payload (``add(arrays=...)``), by their own names."""
+    return {k[2:]: v for k, v in p.items() if k.startswith("x_")}
 
 
 def _optional(p: dict[str, np.ndarray], name: str, shape: tuple[int, int], what: str) -> np.ndarray | None:

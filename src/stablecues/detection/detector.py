@@ -502,8 +502,9 @@ class LoopDetector:
         xyz = None if prep.points is None else prep.points.xyz
         if prep.points is not None and not prep.points.metric and prep.points_source is not None:
             meta.update(relative_points_meta(prep.points, prep.points_source))
+        arrays = None if prep.weights is None else {"weights": prep.weights}
         self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
-                    pose=frame.pose, meta=meta)
+                    pose=frame.pose, meta=meta, arrays=arrays)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a

@@ -101,6 +101,9 @@ class PreparedFrame:
         certainty: the frame certainty of the network's segmentation of this frame (None when
             the network did not run), kept with the entry so a reopened map restores the
             stream's domain window (``DetectorConfig.domain_window``).
+        weights: (N,) float32 semantic stability weight of each kept feature (None without
+            ``DetectorConfig.weighting``): they weight the BoW vector, order the matches for
+            triangles, and are kept with the entry.
     """
 
     features: Features
@@ -114,11 +117,12 @@ class PreparedFrame:
     timings: dict[str, float] = field(default_factory=dict)
     t_start: float = 0.0
     certainty: float | None = None
+    weights: np.ndarray | None = None
 
     @property
     def view(self) -> View:
         """What the verifier needs of this frame."""
-        return View(self.features, self.fvec, self.points)
+        return View(self.features, self.fvec, self.points, self.weights)
 
 
 class _Laps:
@@ -281,8 +285,9 @@ class FramePreparer:
                 points, source, calib = self._triangulate(features, fvec, calib)
             self.remember(features, fvec)
             laps("lift")  # 3D from whichever source: map points, stereo, depth or triangulation
+        kept = None if weights is None else weights.astype(np.float32)  # as the entry keeps them
         return PreparedFrame(features, bow, fvec, points, calib, n_features, fallback, source,
-                             laps.timings, laps.start, self._frame_certainty)
+                             laps.timings, laps.start, self._frame_certainty, kept)
 
     def _given_features(self, frame: Frame, features: FeaturesLike | None) -> Features | None:
         """The SLAM system's features of a frame, as Features of the vocabulary's kind, or None."""

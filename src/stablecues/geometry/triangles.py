@@ -292,7 +292,10 @@ def _common_scale(triangles: list[Triangle], k_sigma: float) -> list[Triangle]:
 
 
 def check_triangles(
-    query: Points3D, candidate: Points3D, config: TriangleConfig = TriangleConfig()
+    query: Points3D,
+    candidate: Points3D,
+    config: TriangleConfig = TriangleConfig(),
+    order: np.ndarray | None = None,
 ) -> TriangleCheck:
     """Check triangles of ranked matches for congruence in the two frames.
 
@@ -300,6 +303,8 @@ def check_triangles(
         query: (M,) 3D points of the query-frame side of the ranked matches, in the query camera.
         candidate: (M,) 3D points of the candidate side of the same matches, same order.
         config: triangle settings.
+        order: a permutation of ``0..M-1``, the order in which matches enter triangles (None:
+            the order given).
 
     Returns:
         The checked triangles (positions refer to the ranked match list).
@@ -308,7 +313,14 @@ def check_triangles(
         raise InputError(
             f"triangle check: expected equal numbers of points, got {len(query)} and {len(candidate)}"
         )
-    usable = np.flatnonzero(query.valid & candidate.valid)
+    valid = query.valid & candidate.valid
+    if order is None:
+        usable = np.flatnonzero(valid)
+    else:
+        order = np.asarray(order)
+        if order.shape != valid.shape or not np.array_equal(np.sort(order), np.arange(valid.size)):
+            raise InputError(f"triangle check: the order must be a permutation of the {valid.size} matches")
+        usable = order[valid[order]]
     q = _Vertices.of(query, usable)
     c = _Vertices.of(candidate, usable)
     pos = usable.tolist()

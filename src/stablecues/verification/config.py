@@ -59,6 +59,12 @@ class VerificationConfig:
             matches of which RANSAC always fits 10-14; a true revisit keeps half or more.
         fallback: without 3D points, fall back to PnP (candidate has 3D) or the fundamental
             matrix (it has none) instead of rejecting with ``TOO_FEW_3D``.
+        stable_ranking: when both frames carry per-feature stability weights (semantic
+            weighting, ``DetectorConfig.weighting``), matches enter the triangles in order of
+            descriptor confidence times the geometric mean of the two weights, not of descriptor
+            distance alone: stable structure first, cars and road texture last. Without
+            weights, or where the weighting faded to 1 (outside the network's domain), the
+            order is the distance order.
     """
 
     method: str = "triangles"
@@ -83,6 +89,7 @@ class VerificationConfig:
     min_fundamental_inliers: int = 20
     min_fundamental_ratio: float = 0.35
     fallback: bool = True
+    stable_ranking: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in _METHODS:

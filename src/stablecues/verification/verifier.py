@@ -35,17 +35,26 @@ class View:
         features: the frame's features.
         fvec: its direct index (None: brute-force matching).
         points: 3D point per feature in the frame's camera with sigmas, or None (no 3D).
+        weights: (N,) stability weight per feature (semantic weighting), or None; orders the
+            matches for triangles (``VerificationConfig.stable_ranking``).
     """
 
     features: Features
     fvec: FeatureVector | None = None
     points: Points3D | None = None
+    weights: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.fvec is not None and len(self.fvec) != len(self.features):
-            raise InputError(f"view: {len(self.features)} features but {len(self.fvec)} feature-vector nodes")
-        if self.points is not None and len(self.points) != len(self.features):
-            raise InputError(f"view: {len(self.features)} features but {len(self.points)} 3D points")
+        n = len(self.features)
+        if self.fvec is not None and len(self.fvec) != n:
+            raise InputError(f"view: {n} features but {len(self.fvec)} feature-vector nodes")
+        if self.points is not None and len(self.points) != n:
+            raise InputError(f"view: {n} features but {len(self.points)} 3D points")
+        if self.weights is not None:
+            w = np.asarray(self.weights)
+            if w.shape != (n,) or not np.issubdtype(w.dtype, np.floating) or not bool(np.all(w >= 0)):
+                raise InputError(f"view: feature weights must be {n} non-negative numbers, one per "
+                                 f"feature, got shape {w.shape} of {w.dtype}")
 
 
 class Verifier:
@@ -113,8 +122,12 @@ class Verifier:
         return self.noise.points(xyz, features.octaves)
 
     def view_of_entry(self, entry: Entry) -> View:
-        """The View of a database entry (its features, direct index and stored 3D points; the
-        sigmas of monocular points are read from the entry's record)."""
+        """The View of a database entry (its features, direct index, stored 3D points and
+        feature weights; the sigmas of monocular points are read from the entry's record).
+
+        Raises:
+            InputError: stored feature weights that are not one non-negative number per feature.
+        """
         points = None
         if entry.points3d is not None and self.camera is not None:
             model = NoiseModel(0.0, self.camera.fx) if self.noise is None else self.noise
@@ -122,7 +135,10 @@ class Verifier:
             points = relative_points_from_meta(entry.points3d, dict(entry.meta), model, octaves)
         if points is None:
             points = self.points_from_xyz(entry.points3d, entry.features)
-        return View(entry.features, entry.fvec, points)
+        try:
+            return View(entry.features, entry.fvec, points, entry.arrays.get("weights"))
+        except InputError as exc:
+            raise InputError(f"database entry {entry.entry_id}: {exc}") from None
 
     def verify_entry(self, query: View, entry: Entry, *, must_beat: int = 0) -> Verification:
         """Verify the query frame against a database entry (``must_beat``: see :meth:`verify`)."""
@@ -314,6 +330,7 @@ class Verifier:
             query.points.subset(matches.query),
             candidate.points.subset(matches.candidate),
             triangle_config,
+            order=self._triangle_order(query, candidate, matches),
         )
         ctx.timings["triangles"] = (time.perf_counter() - t) * 1e3
         extra: dict[str, Any] = {"triangles": tc.triangles, "n_triangles_agree": tc.n_agree}
@@ -335,6 +352,20 @@ class Verifier:
         if not pose.success and cfg.min_pnp_inliers == 0:  # PnP only gives the pose here, no vote
             return ctx.finish(Status.ACCEPTED, summary + "; PnP found no pose", inliers=vertices, **extra)
         return self._decide_pose(ctx, pose, summary + "; ", **extra)
+
+    def _triangle_order(self, query: View, candidate: View, matches: Matches) -> np.ndarray | None:
+        """The order in which matches enter triangles (None: their rank, by descriptor distance).
+
+        With stability weights on both sides (``stable_ranking``): descriptor confidence times
+        the geometric mean of the two features' weights, best first, ties in rank order. A
+        weight is how often features of the feature's class come back on a revisit, relative to
+        the average, so the product ranks a match by how likely it is both right and lasting.
+        """
+        if not self.config.stable_ranking or query.weights is None or candidate.weights is None:
+            return None
+        w = np.sqrt(np.asarray(query.weights, np.float64)[matches.query]
+                    * np.asarray(candidate.weights, np.float64)[matches.candidate])
+        return np.argsort(-(matches.confidence.astype(np.float64) * w), kind="stable")
 
     def _triangle_rejection(self, tc: TriangleCheck) -> tuple[Status, str]:
         """Why too few triangles agreed, and a note for the reason line."""
