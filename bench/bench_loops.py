@@ -40,6 +40,7 @@ import os
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +74,8 @@ SWITCHES: dict[str, dict[str, Any]] = {
     "+ temporal window k = 2": {"query": {"temporal_k": 2}},
     "+ temporal window k = 3 (DLoopDetector)": {"query": {"temporal_k": 3}},
     "+ monocular triangles": {"monocular": {}},
+    "+ monocular triangles, matches by distance only (no stable ranking)": {
+        "monocular": {}, "verification": {"stable_ranking": False}},
     "- semantic weighting (dynamic mask only)": {"weighting": None},
     "- dynamic mask (weighting only)": {"masking": None},
     "- semantics (preset fast: no network)": {"weighting": None, "masking": None},
@@ -370,10 +373,12 @@ def _run_eval(ds: Any, gt: Any, cfg: Any, work: Path, name: str, score: str = "s
     run = load_run(run_dir)
     ev, _ = evaluate_run(run, gt, protocol="exact", tolerance=0, exclude=0, score=score)  # type: ignore[arg-type]
     funnel = loss_funnel(run, gt.matrix, ev, query_mask=gt.query_mask)
+    # the verifier that decided each verified frame (the fallback's name when it stood in)
+    verifiers = Counter(str(e["verifier"]) for e in run.extra() if "verifier" in e)
     return {
         "r_at_100p": round(ev.recall_at_100p, 4), "tp": ev.tp, "fp": ev.fp, "positives": ev.positives,
         "tp_at_100p": ev.tp_at_100p, "ms_per_frame": round(summary.ms_per_frame, 2),
-        "funnel": funnel.counts,
+        "funnel": funnel.counts, "verifiers": dict(verifiers.most_common()),
     }
 
 
@@ -425,9 +430,10 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     """Milliseconds per 480x360 frame on ONE thread (OpenCV and onnxruntime), the CamVid revisit
     frames of ``train_drives``: the default, with monocular triangulation, with the network (T = 1).
 
-    The variants run in ``rounds`` interleaved rounds (a shared machine's speed drifts by a
-    quarter within minutes); each figure is the median over the rounds of the round's statistic,
-    with every round's mean beside it."""
+    The variants run in lockstep, frame by frame (every variant processes frame i before any
+    processes frame i + 1): a shared machine's speed drifts by a quarter within a minute, and
+    this way every variant meets the same drift. That is repeated ``rounds`` times; each figure
+    is the median over the rounds of the round's statistic, with every round's mean beside it."""
     from stablecues.semantics.inference import SegmentationModel
 
     cv2.setNumThreads(1)
@@ -447,15 +453,21 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
     }
     per_round: dict[str, list[dict[str, float]]] = {}
     for _ in range(rounds):
+        detectors: dict[str, LoopDetector] = {}
         for label, (name, over) in variants.items():
             cfg = preset(name, {"similarity": False, **over})
             model = models.get(cfg.segmentation_precision)
             if needs_segmentation(cfg) and model is None:
                 continue
             seg = (lambda image, m=model: m.predict(image, 1)) if model is not None else None  # noqa: E731
-            det = LoopDetector(cfg, segmenter=seg)
-            totals = [det.process(f).timings["total"] for f in frames]
+            detectors[label] = LoopDetector(cfg, segmenter=seg)
+        times: dict[str, list[float]] = {label: [] for label in detectors}
+        for f in frames:
+            for label, det in detectors.items():
+                times[label].append(det.process(f).timings["total"])
+        for label, det in detectors.items():
             det.close()
+            totals = times[label]
             per_round.setdefault(label, []).append(
                 {"mean_ms": float(np.mean(totals)), "median_ms": float(np.median(totals)),
                  "p90_ms": float(np.percentile(totals, 90))})
