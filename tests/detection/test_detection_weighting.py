@@ -6,8 +6,10 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from stablecues.detection import FramePreparer, LoopDetector, preset
+from stablecues.errors import InputError
 from stablecues.types import Frame
 from stablecues.vocabulary import default_vocabulary
 
@@ -65,3 +67,15 @@ def test_feature_weights_travel_with_the_view_and_the_entry(tmp_path: Path) -> N
     stored = reopened.db.entry(0).arrays["weights"]
     np.testing.assert_array_equal(stored, prep.weights)
     reopened.close()
+
+
+def test_malformed_stored_weights_name_the_map(tmp_path: Path) -> None:
+    """A map entry whose stored weights do not fit its features: a one-line error naming the file."""
+    cfg = dataclasses.replace(preset("weighted"), semantic_source="labels")
+    det = LoopDetector(cfg, database=tmp_path / "map.sqlite")
+    prep = det.preparer.prepare(frame(textured(4), labels=np.full((240, 320), 1, np.uint8)))
+    det.db.add(prep.bow, prep.fvec, prep.features, arrays={"weights": np.ones(5, np.float32)})
+    with pytest.raises(InputError, match=r"map\.sqlite: database entry 0: view: feature weights") as info:
+        det._candidate(det.preparer.verifier(None), 0)
+    assert "\n" not in str(info.value)
+    det.close()

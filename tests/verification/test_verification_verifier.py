@@ -255,7 +255,9 @@ def test_stable_cues_enter_the_triangles_first() -> None:
 
 def test_feature_weights_are_checked() -> None:
     q, c = _moving_objects()
-    for bad in (np.ones(3, np.float32), -np.ones(len(q.features)), np.ones(len(q.features), np.int64)):
+    n = len(q.features)
+    for bad in (np.ones(3, np.float32), -np.ones(n), np.ones(n, np.int64), np.full(n, np.nan),
+                np.full(n, np.inf)):
         with pytest.raises(InputError, match="feature weights"):
             View(q.features, None, q.points, bad)
     assert c.points is not None

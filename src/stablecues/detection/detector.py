@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from ..database import Database
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..geometry.camera import Calibration
 from ..geometry.points import Points3D, relative_points_meta
 from ..geometry.rotations import quat_from_rotvec, quat_to_matrix
 from ..types import BowVector, FeaturesLike, Frame
 from ..verification.result import Verification
-from ..verification.verifier import Verifier
+from ..verification.verifier import Verifier, View
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
@@ -426,7 +426,7 @@ class LoopDetector:
         checked = []
         most = 0  # inliers of the best loop accepted so far: a candidate with fewer matches cannot win
         for island in found.islands[: self.config.query.islands_verified]:
-            result = verifier.verify_entry(prep.view, self.db.entry(island.best), must_beat=most)
+            result = verifier.verify(prep.view, self._candidate(verifier, island.best), must_beat=most)
             checked.append(Checked(island, self._entry_frames[island.best], result))
             if result.accepted:
                 most = max(most, result.n_inliers)
@@ -447,6 +447,14 @@ class LoopDetector:
             found.raw_score = found.raw_of.get(entry, 0.0)
         return Status.LOOP_DETECTED, result, tuple(checked)
 
+    def _candidate(self, verifier: Verifier, entry: int) -> View:
+        """The verifier's view of a map entry; a malformed stored array names the map."""
+        try:
+            return verifier.view_of_entry(self.db.entry(entry))
+        except InputError as exc:
+            where = self.db.path if self.db.path is not None else "the detector's map (in memory)"
+            raise InputError(f"{where}: {exc}") from None
+
     def _refine(
         self, prep: PreparedFrame, verifier: Verifier, island: Island, checked: list[Checked], inliers: int
     ) -> list[tuple[int, Verification]]:
@@ -457,7 +465,7 @@ class LoopDetector:
         out = []
         for e in range(max(island.first, island.best - r), min(island.last, island.best + r) + 1):
             if e != island.best:
-                result = verifier.verify_entry(prep.view, self.db.entry(e), must_beat=inliers + 1)
+                result = verifier.verify(prep.view, self._candidate(verifier, e), must_beat=inliers + 1)
                 checked.append(Checked(island, self._entry_frames[e], result))
                 out.append((e, result))
                 if result.accepted:
@@ -470,7 +478,7 @@ class LoopDetector:
         """The relative pose of an accepted loop from its matched 3D points alone (map points
         without a calibration, so no camera for PnP): ``result`` with the pose and its inliers,
         or unchanged when the points are not metric in both frames or fit no rigid motion."""
-        cand = verifier.view_of_entry(self.db.entry(entry)).points
+        cand = self._candidate(verifier, entry).points
         query = prep.points
         if query is None or cand is None or not (query.metric and cand.metric):
             return result

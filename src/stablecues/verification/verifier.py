@@ -52,9 +52,10 @@ class View:
             raise InputError(f"view: {n} features but {len(self.points)} 3D points")
         if self.weights is not None:
             w = np.asarray(self.weights)
-            if w.shape != (n,) or not np.issubdtype(w.dtype, np.floating) or not bool(np.all(w >= 0)):
-                raise InputError(f"view: feature weights must be {n} non-negative numbers, one per "
-                                 f"feature, got shape {w.shape} of {w.dtype}")
+            if (w.shape != (n,) or not np.issubdtype(w.dtype, np.floating)
+                    or not bool(np.all(np.isfinite(w) & (w >= 0)))):
+                raise InputError(f"view: feature weights must be {n} finite non-negative numbers, one "
+                                 f"per feature, got shape {w.shape} of {w.dtype}")
 
 
 class Verifier:
