@@ -239,7 +239,7 @@ def test_stable_cues_enter_the_triangles_first() -> None:
     triangles, which disagree; ranked with the features' stability weights, the static
     structure makes them and the loop is accepted."""
     q, c = _moving_objects()
-    cfg = merge(preset("default"), {"acceptance": "all", "n_triangles": 5})
+    cfg = merge(preset("default"), {"acceptance": "all", "n_triangles": 5, "stable_ranking": True})
     ranked = Verifier(cfg, camera=CAM, noise=NOISE).verify(q, c)
     plain = Verifier(merge(cfg, {"stable_ranking": False}), camera=CAM, noise=NOISE).verify(q, c)
     assert ranked.accepted and not plain.accepted
