@@ -103,7 +103,7 @@ class PreparedFrame:
             stream's domain window (``DetectorConfig.domain_window``).
         weights: (N,) float32 semantic stability weight of each kept feature (None without
             ``DetectorConfig.weighting``): they weight the BoW vector, order the matches for
-            triangles, and are kept with the entry.
+            triangles with ``verification.stable_ranking``, and are kept with the entry.
     """
 
     features: Features
