@@ -17,6 +17,7 @@ extra for ``onnx``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import sys
@@ -57,7 +58,7 @@ def main() -> None:
         sys.exit(f"quantize_segnet: {args.out.parent}: no such directory for the output")
     if args.every < 1:
         sys.exit(f"quantize_segnet: --every {args.every}: expected a positive frame step")
-    frames = sorted((args.data / "train").glob("*.[jp][pn]g"))[:: args.every]
+    frames = sorted((args.data.resolve() / "train").glob("*.[jp][pn]g"))[:: args.every]  # read in tmp
     if not frames:
         sys.exit(f"quantize_segnet: {args.data / 'train'}: no CamVid train frames found")
     src = default_weights_path()
@@ -79,7 +80,10 @@ def main() -> None:
             f = next(self.it, None)
             return None if f is None else {"image": prepared(f), "mask16": m16, "mask8": m8}
 
-    with tempfile.TemporaryDirectory() as tmp:
+    args.out = args.out.resolve()
+    # the quantizer writes scratch files (an augmented model's external data, "<uuid>.data") into
+    # the working directory: run it inside the temporary folder so that none is left behind
+    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
         quantize_static(str(pre), str(args.out), Frames(), quant_format=QuantFormat.QDQ,
