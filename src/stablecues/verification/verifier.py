@@ -127,7 +127,8 @@ class Verifier:
         feature weights; the sigmas of monocular points are read from the entry's record).
 
         Raises:
-            InputError: stored feature weights that are not one non-negative number per feature.
+            InputError: stored feature weights that are not one finite non-negative number per
+                feature.
         """
         points = None
         if entry.points3d is not None and self.camera is not None:
