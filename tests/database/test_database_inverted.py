@@ -93,7 +93,7 @@ def test_scores_do_not_depend_on_the_segments() -> None:
 
 def test_maintenance_runs_in_bounded_steps(monkeypatch: pytest.MonkeyPatch) -> None:
     """Inline maintenance does at most one step per add, and a step handles at most about one
-    chunk of postings (or one sealed block), whatever the index size."""
+    chunk of postings (or FAN_IN sealed blocks), whatever the index size."""
     steps: list[int] = []
     real_step = MergeJob.step
 
@@ -115,12 +115,15 @@ def test_maintenance_runs_in_bounded_steps(monkeypatch: pytest.MonkeyPatch) -> N
     monkeypatch.setattr(InvertedIndex, "step", one_step)
     vecs = vectors(1500, Scoring.L1, seed=5)
     idx = InvertedIndex(N_WORDS, Scoring.L1, tail_limit=200, chunk=400)
-    per_add = []
+    per_add, unsorted = [], []
     for w, v in vecs:
         calls.clear()
         idx.add(w, v.astype(np.float32))
         per_add.append(len(calls))
+        unsorted.append(len(idx._blocks))
     assert max(per_add) == 1
+    # sealed blocks are sorted FAN_IN at a time, as soon as FAN_IN of them wait
+    assert max(unsorted) == FAN_IN - 1
     assert steps and max(steps) <= 2 * 400 + 40  # a chunk, plus one word's run at most
     # segments stay O(log n): at most FAN_IN - 1 per size class, plus jobs in progress
     classes = int(np.log(idx.n_postings / 200) / np.log(FAN_IN)) + 2

@@ -20,6 +20,7 @@ from stablecues.database.segments import (
     map_segment,
     pack_postings,
     sort_block,
+    sort_blocks,
     split,
     verify_segment,
 )
@@ -178,20 +179,25 @@ def test_merge_runs_is_a_stable_merge_by_word(engine: str) -> None:
         segments.merge_runs([np.ones(2, np.int64)], [np.zeros(2, "<i8")], out=np.zeros(3, "<i8"))
 
 
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
 @pytest.mark.parametrize("csr", [False, True])
 @pytest.mark.parametrize("drop", [False, True])
 def test_merge_in_memory_drops_removed_entries_and_shifts_ids(
-    csr: bool, drop: bool, monkeypatch: pytest.MonkeyPatch
+    engine: str, csr: bool, drop: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Without removals or shift the merge is written in place into the sink's buffer."""
+    """Without removals or shift the merge is written in place into the sink's buffer. The
+    inputs keep a word per posting: the compiled engine merges them by counting."""
+    if engine == "compiled":
+        pytest.importorskip("numba")
     monkeypatch.setattr(segments, "CSR_MIN", 100 if csr else 1 << 30)
     parts = [random_segment(20, seed=s, lo=20 * s) for s in range(3)]
     alive = np.ones(60, bool)
     if drop:
         alive[[0, 7, 21, 59]] = False
     shift = 1000 if drop else 0
+    assert all(p.words is not None for p in parts)
     job = MergeJob(parts, lambda lo, hi, c, t: segments.MemorySink(lo, hi, c, N_WORDS, t), N_WORDS,
-                   chunk=97, alive=alive if drop else None, shift=shift)
+                   chunk=97, alive=alive if drop else None, shift=shift, engine=engine)
     while not job.step():
         pass
     out = job.result
@@ -214,3 +220,62 @@ def test_merge_runs_refuses_counts_that_do_not_match_the_postings() -> None:
         segments.merge_runs([np.array([3, 1]), np.array([1, 0])], [np.zeros(1, "<i8"), np.zeros(1, "<i8")])
     with pytest.raises(DatabaseError, match="corrupt"):
         segments.merge_runs([np.array([2, -1])], [np.zeros(1, "<i8")])
+
+
+def random_blocks(n_blocks: int, per_block: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Unsorted blocks of postings as the index seals them: each entry's words in order."""
+    rng = np.random.default_rng(seed)
+    out, e = [], 0
+    for _ in range(n_blocks):
+        words, post = [], []
+        for _ in range(per_block):
+            w = np.unique(rng.integers(0, N_WORDS, int(rng.integers(0, 40)))).astype(np.int32)
+            words.append(w)
+            post.append(pack_postings(np.full(w.size, e, np.int32), rng.random(w.size)))
+            e += 1
+        out.append((np.concatenate(words), np.concatenate(post)))
+    return out
+
+
+@pytest.mark.parametrize("csr", [False, True])
+def test_sort_blocks_counting_sort_is_the_numpy_sort(csr: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocks sorted together by counting (compiled) give the segment NumPy's sort gives, and
+    that of one block holding them all: by word, then entry."""
+    pytest.importorskip("numba")
+    monkeypatch.setattr(segments, "CSR_MIN", 100 if csr else 1 << 30)
+    blocks = random_blocks(4, 15, seed=11)
+    sessions = np.arange(60, dtype=np.int32) % 3
+    a = sort_blocks(blocks, 0, 60, sessions, N_WORDS, engine="numpy")
+    b = sort_blocks(blocks, 0, 60, sessions, N_WORDS, engine="compiled")
+    one = sort_block(np.concatenate([w for w, _ in blocks]), np.concatenate([p for _, p in blocks]), 0, 60,
+                     sessions, N_WORDS, engine="compiled")
+    for seg in (b, one):
+        assert np.array_equal(seg.postings, a.postings) and (seg.indptr is not None) == csr
+        assert np.array_equal(seg.indptr if csr else seg.words, a.indptr if csr else a.words)
+    words = np.repeat(np.arange(N_WORDS), np.diff(a.indptr)) if csr else a.words
+    ent = split(a.postings)[0]
+    assert np.array_equal(np.lexsort((ent, words)), np.arange(ent.size))
+    if csr:  # the counting sort checks every word and entry id before it writes anything
+        bad = [*blocks[:3], (blocks[3][0] + N_WORDS, blocks[3][1])]
+        with pytest.raises(ValueError, match="words outside 0..299"):
+            sort_blocks(bad, 0, 60, sessions, N_WORDS, engine="compiled")
+        with pytest.raises(ValueError, match="entries outside 0..44"):
+            sort_blocks(blocks, 0, 45, sessions, N_WORDS, engine="compiled")
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_merge_refuses_entry_ids_out_of_place(engine: str) -> None:
+    """A small segment holding an entry id outside its range (corrupt) stops the merge with a
+    DatabaseError, whichever engine merges."""
+    if engine == "compiled":
+        pytest.importorskip("numba")
+    parts = [random_segment(20, seed=s, lo=20 * s) for s in range(2)]
+    ent, _ = split(parts[1].postings)
+    post = parts[1].postings.copy()
+    post.view("<i4")[0] = 3  # an entry of the first segment
+    parts[1] = Segment(20, 40, post, parts[1].words, None, parts[1].sessions)
+    job = MergeJob(parts, lambda lo, hi, c, t: segments.MemorySink(lo, hi, c, N_WORDS, t), N_WORDS,
+                   engine=engine)
+    with pytest.raises(DatabaseError, match="corrupt"):
+        while not job.step():
+            pass

@@ -10,10 +10,11 @@ summed in word order whatever the segments look like, so scores do not depend on
 segments were merged.
 
 Maintenance never stalls an add: when the latest additions reach ``tail_limit`` postings they
-are sealed into a block (O(1)); sorting a block into a segment and merging ``FAN_IN``
-adjacent segments of one size class are jobs done one bounded step at a time (a chunk of
-words), by the adding thread, one step per add at most (``background=False``), or by a
-background thread (``background=True``). Segments stay O(log n), and each posting is merged
+are sealed into a block (O(1)); sorting ``FAN_IN`` blocks together into a segment (one
+counting sort, O(P + W), with the compiled engine) and merging ``FAN_IN`` adjacent segments
+of one size class are jobs done one bounded step at a time (a chunk of words), by the adding
+thread, one step per add at most (``background=False``), or by a background thread
+(``background=True``). Segments stay O(log n), and each posting is merged
 about log_FAN_IN(n / tail_limit) times. With a ``store`` the segments are files: a
 finished job writes its segment file first and then commits the list of files (the manifest)
 through the store, so the files on disk and the manifest never disagree.
@@ -35,12 +36,12 @@ import numpy as np
 
 from ..errors import DatabaseError
 from ..vocabulary.scoring import Scoring, common_terms, finish, kl_missing_total
-from .segments import MemorySink, MergeJob, Segment, Sink, empty_postings, pack_postings, sort_block, split
+from .segments import MemorySink, MergeJob, Segment, Sink, empty_postings, pack_postings, sort_blocks, split
 
 log = logging.getLogger(__name__)
 
-MAX_BLOCKS = 4  # sealed blocks waiting to be sorted before an add waits for the maintenance
-FAN_IN = 4  # segments of one size class merged together
+FAN_IN = 4  # segments of one size class merged together, and blocks sorted together
+MAX_BLOCKS = 2 * FAN_IN  # sealed blocks waiting to be sorted before an add helps the maintenance
 MAX_SEGMENTS = 48  # beyond this many segments an add helps the background maintenance
 
 
@@ -70,14 +71,14 @@ class _Block:
 @dataclass(eq=False)
 class _Job:
     inputs: list[Segment]
-    block: _Block | None = None
+    blocks: list[_Block] = field(default_factory=list)  # oldest sealed blocks, sorted together
     merge: MergeJob | None = None
     claimed: bool = False
     dropped: bool = False  # the index was reset while the job ran: its result is thrown away
 
     @property
     def remaining(self) -> int:
-        if self.block is not None:
+        if self.blocks:
             return -1  # flushes first
         assert self.merge is not None
         return self.merge.remaining
@@ -146,6 +147,7 @@ class InvertedIndex:
         self._snap: _Snapshot | None = None
         self._local = threading.local()
         self._credit = 0
+        self._flushing = 0  # flush() is waiting: sort blocks even when fewer than FAN_IN
         self._idle = False  # nothing to do until the segments change (inline maintenance)
         self._broken: BaseException | None = None
         self._stop = False
@@ -271,7 +273,7 @@ class InvertedIndex:
             # inline maintenance: at most one bounded step per add, paid for by the postings
             # added (each posting is merged about log2(n) times)
             self._credit += 32 * n_postings
-            if self._blocks or (self._credit >= self.chunk and not self._idle):
+            if len(self._blocks) >= FAN_IN or (self._credit >= self.chunk and not self._idle):
                 done = self.step()
                 if done is None:
                     self._idle, self._credit = True, 0
@@ -324,9 +326,10 @@ class InvertedIndex:
         return work
 
     def _advance(self, job: _Job) -> tuple[bool, int]:
-        if job.block is not None:
-            b = job.block
-            seg = sort_block(b.words, b.postings, b.lo, b.hi, b.sessions, self.n_words)
+        if job.blocks:
+            bs = job.blocks
+            seg = sort_blocks([(b.words, b.postings) for b in bs], bs[0].lo, bs[-1].hi,
+                              np.concatenate([b.sessions for b in bs]), self.n_words)
             if self.store is not None:
                 sink = self.store.sink(seg.lo, seg.hi, seg.indptr is not None, seg.size)
                 try:
@@ -336,7 +339,7 @@ class InvertedIndex:
                     sink.abort()
                     raise
             job.inputs = [seg]
-            return True, b.postings.shape[0]
+            return True, seg.size
         assert job.merge is not None
         before = job.merge.remaining
         done = job.merge.step()
@@ -352,10 +355,11 @@ class InvertedIndex:
         return job
 
     def _plan(self) -> None:
-        """Start the jobs the index needs: sort the oldest sealed block, persist segments kept
-        in memory, merge adjacent segments of similar size."""
-        if self._blocks and not any(j.block is not None for j in self._jobs):
-            self._jobs.append(_Job([], block=self._blocks[0]))
+        """Start the jobs the index needs: sort the oldest FAN_IN sealed blocks (fewer when
+        flushing), persist segments kept in memory, merge adjacent segments of similar size."""
+        if ((len(self._blocks) >= FAN_IN or (self._flushing and self._blocks))
+                and not any(j.blocks for j in self._jobs)):
+            self._jobs.append(_Job([], blocks=self._blocks[:FAN_IN]))
         segs = self._segments
         free = [s for s in segs if id(s) not in self._busy]
         if self.store is not None:
@@ -396,9 +400,10 @@ class InvertedIndex:
         segments whose files are to be deleted."""
         self._jobs.remove(job)
         self._idle = False
-        if job.block is not None:
-            assert self._blocks and self._blocks[0] is job.block
-            self._blocks.pop(0)
+        if job.blocks:
+            k = len(job.blocks)
+            assert all(a is b for a, b in zip(self._blocks[:k], job.blocks, strict=True))
+            del self._blocks[:k]
             new = job.inputs[0]
             self._segments.append(new)
             old: list[Segment] = []
@@ -488,14 +493,21 @@ class InvertedIndex:
         when the index has a store)."""
         with self._lock:
             self._seal()
-        while True:
-            if self._broken is not None:
-                raise DatabaseError(f"index maintenance failed: {self._broken}")
-            if self.step() is None:
-                with self._lock:
-                    if not self._jobs and not self._blocks and self._has_no_pending_plan():
-                        return
-                    self._changed.wait(timeout=0.05)
+            self._flushing += 1
+            self._idle = False
+            self._changed.notify_all()
+        try:
+            while True:
+                if self._broken is not None:
+                    raise DatabaseError(f"index maintenance failed: {self._broken}")
+                if self.step() is None:
+                    with self._lock:
+                        if not self._jobs and not self._blocks and self._has_no_pending_plan():
+                            return
+                        self._changed.wait(timeout=0.05)
+        finally:
+            with self._lock:
+                self._flushing -= 1
 
     def _has_no_pending_plan(self) -> bool:
         self._plan()

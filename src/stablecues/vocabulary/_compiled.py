@@ -15,8 +15,9 @@ for binary descriptors of any other width, :func:`descend_float` for float descr
 matcher: :func:`best_two_binary`, each query descriptor's nearest and second-nearest
 candidate under its vocabulary node (``tests/verification/test_verification_matching.py``
 checks it against NumPy); :func:`argmax_channels`, the class map of a segmentation; and
-:func:`scatter_runs`, the copy at the heart of merging index segments
-(``tests/database/test_database_segments.py`` checks it against NumPy).
+:func:`scatter_runs`, the copy at the heart of merging index segments, and
+:func:`count_words` with :func:`scatter_words`, the counting sort that sorts and merges small
+ones (``tests/database/test_database_segments.py`` checks them against NumPy).
 """
 
 from __future__ import annotations
@@ -315,3 +316,40 @@ def scatter_runs(out: np.ndarray, postings: np.ndarray, counts: np.ndarray, dest
         for j in range(c):
             out[d + j] = postings[src + j]
         src += c
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def count_words(counts: np.ndarray, words: np.ndarray, postings: np.ndarray, w0: int, lo: int,
+                hi: int) -> int:
+    """Add the postings of each word ``w0 + k`` to ``counts[k]``; returns how many postings
+    have a word outside ``w0 .. w0 + len(counts) - 1`` or an entry id outside ``lo .. hi - 1``
+    (left out: a corrupt segment). The first half of a counting sort of index postings by
+    word (:func:`scatter_words` is the second)."""
+    n = counts.shape[0]
+    bad = 0
+    for i in range(words.shape[0]):
+        w = words[i] - w0
+        e = postings[i] & 0xFFFFFFFF  # the entry id: the low half of a little-endian posting
+        if w < 0 or w >= n or e < lo or e >= hi:
+            bad += 1
+        else:
+            counts[w] += 1
+    return bad
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def scatter_words(out: np.ndarray, dest: np.ndarray, words: np.ndarray, postings: np.ndarray,
+                  w0: int) -> None:
+    """Write each posting to ``out[dest[word - w0]]`` and advance that word's ``dest``: the
+    stable second half of a counting sort (inputs scattered oldest first keep entry ids
+    ascending within every word). Postings :func:`count_words` left out are skipped."""
+    n = dest.shape[0]
+    m = out.shape[0]
+    for i in range(words.shape[0]):
+        w = words[i] - w0
+        if 0 <= w < n:
+            d = dest[w]
+            if d < m:
+                out[d] = postings[i]
+                dest[w] = d + 1
+

@@ -79,6 +79,12 @@ def _warm(kernels: ModuleType) -> None:
     kernels.best_two_binary(q, q, node, one, node, one, 256, one.copy(), one.copy(), one.copy())
     kernels.argmax_channels(np.zeros((1, 1, 2), np.float32), np.zeros((1, 1), np.uint8))
     kernels.scatter_runs(np.zeros(1, "<i8"), np.zeros(1, "<i8"), np.ones(1, np.int64), np.zeros(1, np.int64))
+    w32 = np.zeros(1, np.int32)
+    mapped = np.zeros(1, np.int32)
+    mapped.flags.writeable = False  # the word array of a segment file, memory-mapped read-only
+    for words in (w32, mapped):
+        kernels.count_words(np.zeros(1, np.int64), words, np.zeros(1, "<i8"), 0, 0, 1)
+        kernels.scatter_words(np.zeros(1, "<i8"), np.zeros(1, np.int64), words, np.zeros(1, "<i8"), 0)
 
 
 def resolve(name: str) -> str:
