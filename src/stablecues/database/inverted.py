@@ -328,16 +328,9 @@ class InvertedIndex:
     def _advance(self, job: _Job) -> tuple[bool, int]:
         if job.blocks:
             bs = job.blocks
+            # in memory first: with a store, the next job writes it to a file in bounded steps
             seg = sort_blocks([(b.words, b.postings) for b in bs], bs[0].lo, bs[-1].hi,
                               np.concatenate([b.sessions for b in bs]), self.n_words)
-            if self.store is not None:
-                sink = self.store.sink(seg.lo, seg.hi, seg.indptr is not None, seg.size)
-                try:
-                    sink.append(0, seg.counts(0, seg.size, 0, self.n_words), seg.postings)
-                    seg = sink.finish(seg.sessions)
-                except BaseException:
-                    sink.abort()
-                    raise
             job.inputs = [seg]
             return True, seg.size
         assert job.merge is not None
