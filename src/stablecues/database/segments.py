@@ -161,16 +161,17 @@ class Segment:
         return self.words[positions].astype(np.int64)
 
     def read(self, a: int, b: int, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), copied, and
-        the (w1 - w0,) int64 count of each word's run among them.
+        """Postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), and the
+        (w1 - w0,) int64 count of each word's run among them.
 
         A persisted segment is read with ``pread``, not through its mapping, so merging does
-        not make the index resident in memory.
+        not make the index resident in memory; an in-memory segment gives a view, which the
+        merge only reads (nothing is copied that the merge copies anyway).
         """
         if self.path is not None and b > a:
             post = _pread(self.path, HEADER_SIZE + 8 * a, b - a)
         else:
-            post = np.array(self.postings[a:b])
+            post = self.postings[a:b]
         return self.counts(a, b, w0, w1), post
 
     def counts(self, a: int, b: int, w0: int, w1: int) -> np.ndarray:
@@ -237,10 +238,11 @@ def sort_blocks(
             raise ValueError(f"postings to index hold words outside 0..{n_words - 1} "
                              f"or entries outside {lo}..{hi - 1}")
     out = np.empty(total, "<i8")
-    dest = np.cumsum(counts) - counts
+    indptr = _table(counts, True)
+    dest = indptr[:-1].copy()  # where each word's run starts; advanced by the scatter
     for w, p in parts:
         kernels.scatter_words(out, dest, w, p, 0)
-    return Segment(lo, hi, out, None, _table(counts, True), sessions)
+    return Segment(lo, hi, out, None, indptr, sessions)
 
 
 def word_order(words: np.ndarray, n_words: int) -> np.ndarray:
