@@ -191,3 +191,25 @@ def test_reset_drops_jobs_in_progress(monkeypatch: pytest.MonkeyPatch) -> None:
     q = vecs[7]
     a, b = idx.scores(q[0], q[1]), other.scores(q[0], q[1])
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and idx.n_entries == 120
+
+
+def test_a_segment_smaller_than_a_group_is_merged_not_stranded() -> None:
+    """Blocks are sorted FAN_IN at a time into groups; a smaller segment (a group flushed early,
+    or what a reopen reads back from the entries) shares the groups' size class, so later
+    merges take it in instead of leaving it between larger segments for good."""
+    vecs = vectors(400, Scoring.L1, seed=9)
+    idx = InvertedIndex(N_WORDS, Scoring.L1, tail_limit=200, chunk=400)
+    for w, v in vecs[:7]:
+        idx.add(w, v.astype(np.float32))
+    idx.flush()
+    (small,) = idx.segments
+    assert small.size < FAN_IN * 200  # less than one group
+    for w, v in vecs[7:]:
+        idx.add(w, v.astype(np.float32))
+    idx.flush()
+    assert all(s is not small for s in idx.segments)
+    assert idx.segments[0].lo == 0 and idx.segments[0].size > FAN_IN * FAN_IN * 200
+    q = vecs[3]
+    want = brute(vecs, q, Scoring.L1, 400)
+    ids, s = idx.scores(q[0], q[1])
+    np.testing.assert_allclose(s, [want[e] for e in ids.tolist()], rtol=1e-9)

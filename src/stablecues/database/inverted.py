@@ -367,7 +367,10 @@ class InvertedIndex:
     def _mergeable(self, segs: list[Segment]) -> list[Segment]:
         """The oldest FAN_IN adjacent free segments of one size class, newest classes first
         (tiered merging: each posting is merged about log_FAN_IN(n / tail_limit) times)."""
-        level = [-1 if id(s) in self._busy else _size_class(s.size, self.tail_limit) for s in segs]
+        # the unit is a sorted group of FAN_IN blocks: smaller segments (a group flushed early, the
+        # entries a reopen read back) share its class, so they merge with groups, not strand
+        base = FAN_IN * self.tail_limit
+        level = [-1 if id(s) in self._busy else _size_class(s.size, base) for s in segs]
         i = len(segs)
         while i > 0:
             j = i - 1
