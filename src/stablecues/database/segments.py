@@ -231,18 +231,10 @@ def sort_blocks(
         if csr:
             return Segment(lo, hi, sp, None, _indptr(sw, n_words), sessions)
         return Segment(lo, hi, sp, sw, None, sessions)
-    counts = np.zeros(n_words, np.int64)
-    parts = [(np.ascontiguousarray(w, np.int32), np.ascontiguousarray(p, "<i8")) for w, p in blocks]
-    for w, p in parts:
-        if kernels.count_words(counts, w, p, 0, lo, hi):
-            raise ValueError(f"postings to index hold words outside 0..{n_words - 1} "
-                             f"or entries outside {lo}..{hi - 1}")
-    out = np.empty(total, "<i8")
-    indptr = _table(counts, True)
-    dest = indptr[:-1].copy()  # where each word's run starts; advanced by the scatter
-    for w, p in parts:
-        kernels.scatter_words(out, dest, w, p, 0)
-    return Segment(lo, hi, out, None, indptr, sessions)
+    parts = [(np.ascontiguousarray(w, np.int32), np.ascontiguousarray(p, "<i8"), lo, hi) for w, p in blocks]
+    counts, out = _counting_sort(kernels, parts, 0, n_words, lambda _: ValueError(
+        f"postings to index hold words outside 0..{n_words - 1} or entries outside {lo}..{hi - 1}"))
+    return Segment(lo, hi, out, None, _table(counts, True), sessions)
 
 
 def word_order(words: np.ndarray, n_words: int) -> np.ndarray:
@@ -612,19 +604,31 @@ def _count_merge(
     (small ones) by counting: one pass to count each word's postings, one to scatter them,
     oldest input first. O(P + (w1 - w0)), not the per-input passes over every word that
     :func:`merge_runs` makes; the same result (tests check it)."""
-    counts = np.zeros(w1 - w0, np.int64)
     inputs = []
     for seg, a, b in parts:
         assert seg.words is not None
-        words = seg.words[a:b]
         post = _pread(seg.path, HEADER_SIZE + 8 * a, b - a) if seg.path is not None else seg.postings[a:b]
-        if kernels.count_words(counts, words, post, w0, seg.lo, seg.hi):
-            raise DatabaseError(f"{_name(seg)}: holds words or entry ids out of place (corrupt)")
-        inputs.append((words, post))
-    n = int(counts.sum())
-    out = np.empty(n, "<i8") if reserve is None else reserve(n)
-    dest = np.cumsum(counts) - counts
-    for words, post in inputs:
+        inputs.append((seg.words[a:b], post, seg.lo, seg.hi))
+    return _counting_sort(kernels, inputs, w0, w1 - w0, lambda i: DatabaseError(
+        f"{_name(parts[i][0])}: holds words or entry ids out of place (corrupt)"), reserve)
+
+
+def _counting_sort(
+    kernels: ModuleType, parts: Sequence[tuple[np.ndarray, np.ndarray, int, int]], w0: int, n: int,
+    refuse: Callable[[int], Exception], reserve: Callable[[int], np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Postings of words ``w0 .. w0 + n - 1`` from parts (words, postings, lo, hi), oldest first,
+    sorted stably by word: the (n,) count of each word and the postings (in ``reserve(P)``
+    when given). Every word and entry id (within the part's ``lo .. hi - 1``) is checked before
+    anything is written: ``refuse(i)`` is raised for the first part that fails."""
+    counts = np.zeros(n, np.int64)
+    for i, (words, post, lo, hi) in enumerate(parts):
+        if kernels.count_words(counts, words, post, w0, lo, hi):
+            raise refuse(i)
+    total = int(counts.sum())
+    out = np.empty(total, "<i8") if reserve is None else reserve(total)
+    dest = np.cumsum(counts) - counts  # where each word's run starts; advanced by the scatter
+    for words, post, _, _ in parts:
         kernels.scatter_words(out, dest, words, post, w0)
     return counts, out
 
