@@ -8,7 +8,7 @@ import pytest
 
 import stablecues.database.segments as segments
 from stablecues.database import InvertedIndex
-from stablecues.database.inverted import FAN_IN
+from stablecues.database.inverted import FAN_IN, MERGE_FAN_IN
 from stablecues.database.segments import MergeJob
 from stablecues.types import BowVector
 from stablecues.vocabulary import Scoring, score
@@ -125,9 +125,9 @@ def test_maintenance_runs_in_bounded_steps(monkeypatch: pytest.MonkeyPatch) -> N
     # sealed blocks are sorted FAN_IN at a time, as soon as FAN_IN of them wait
     assert max(unsorted) == FAN_IN - 1
     assert steps and max(steps) <= 2 * 400 + 40  # a chunk, plus one word's run at most
-    # segments stay O(log n): at most FAN_IN - 1 per size class, plus jobs in progress
-    classes = int(np.log(idx.n_postings / 200) / np.log(FAN_IN)) + 2
-    assert len(idx.segments) <= (FAN_IN - 1) * classes + FAN_IN
+    # segments stay O(log n): at most MERGE_FAN_IN - 1 per size class, plus jobs in progress
+    classes = int(np.log(idx.n_postings / (FAN_IN * 200)) / np.log(MERGE_FAN_IN)) + 2
+    assert len(idx.segments) <= (MERGE_FAN_IN - 1) * classes + MERGE_FAN_IN
 
 
 def test_sessions_and_removal() -> None:
