@@ -65,6 +65,30 @@ def test_round_trip_and_queries(csr: bool, tmp_path: Path) -> None:
     assert np.array_equal(again.postings, seg.postings)
 
 
+@pytest.mark.parametrize("csr", [False, True])
+def test_files_do_not_depend_on_the_announced_size_or_the_step_budget(csr: bool, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The word table is filled chunk by chunk (growing past an announced total that was too
+    small) and the tables are written a budget at a time: the file is the same either way."""
+    seg = random_segment(80, seed=3)
+    files = []
+    real = FileSink.finish_step
+    for k, (total, budget) in enumerate([(0, 1 << 20), (seg.size, 1 << 20), (7, 64), (seg.size, 1)]):
+        path = tmp_path / f"seg-{k:08d}.sci"
+        monkeypatch.setattr(FileSink, "finish_step", lambda self, sessions, b=budget: real(self, sessions, b))
+        job = MergeJob([seg], lambda lo, hi, c, t, p=path, n=total: FileSink(p, UUID, lo, hi, csr, N_WORDS,
+                                                                           fsync=False, total=n),
+                       N_WORDS, chunk=100)
+        job.csr = csr
+        while not job.step():
+            pass
+        assert job.result is not None and np.array_equal(job.result.postings, seg.postings)
+        if not csr:
+            assert np.array_equal(job.result.words, seg.words)
+        files.append(path.read_bytes())
+    assert all(f == files[0] for f in files[1:])
+
+
 def corrupt(path: Path, offset: int, data: bytes) -> None:
     raw = bytearray(path.read_bytes())
     raw[offset : offset + len(data)] = data

@@ -191,7 +191,7 @@ class IndexFiles:
     def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
         path = self.directory / f"seg-{self.next_gen:08d}.sci"
         self.next_gen += 1
-        return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync)
+        return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync, total)
 
     def commit(self, segments: Sequence[Segment]) -> None:
         if self.fsync:
