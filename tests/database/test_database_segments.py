@@ -287,6 +287,26 @@ def test_sort_blocks_counting_sort_is_the_numpy_sort(csr: bool, monkeypatch: pyt
             sort_blocks(blocks, 0, 45, sessions, N_WORDS, engine="compiled")
 
 
+def test_a_small_block_never_loads_the_compiled_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Sorting fewer postings than a CSR table is worth (what a reopen reads back from the
+    entries) is NumPy's job: it does not import numba and load its cache (about a second in a
+    fresh process), which is what a reopen used to spend there."""
+    monkeypatch.setattr(segments, "CSR_MIN", 1 << 30)
+
+    def loading() -> None:
+        raise AssertionError("the compiled kernels were loaded")
+
+    monkeypatch.setattr(segments, "compiled_kernels", loading)
+    blocks = random_blocks(2, 10, seed=4)
+    seg = sort_blocks(blocks, 0, 20, np.zeros(20, np.int32), N_WORDS)
+    assert seg.words is not None and seg.indptr is None
+    monkeypatch.setattr(segments, "CSR_MIN", 100)
+    big = random_blocks(4, 15, seed=11)
+    assert sum(w.size for w, _ in big) >= segments.csr_threshold(N_WORDS)
+    with pytest.raises(AssertionError, match="were loaded"):  # a CSR segment is counted
+        sort_blocks(big, 0, 60, np.zeros(60, np.int32), N_WORDS)
+
+
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
 def test_merge_refuses_entry_ids_out_of_place(engine: str) -> None:
     """A small segment holding an entry id outside its range (corrupt) stops the merge with a

@@ -218,9 +218,11 @@ def sort_blocks(
     additions are sorted FAN_IN blocks at a time. NumPy sorts unique (word, position) keys.
     Both orders are stable (entry ids ascending within a word): the segments are identical.
     """
-    kernels = compiled_kernels() if resolve(engine) == "compiled" else None
     total = sum(int(w.shape[0]) for w, _ in blocks)
     csr = total >= csr_threshold(n_words)
+    # only a CSR segment is counted: a small one (the entries a reopen reads back) never loads
+    # the compiled kernels (numba's import and cache, about a second in a fresh process)
+    kernels = compiled_kernels() if csr and resolve(engine) == "compiled" else None
     if kernels is None or not csr:
         # a table of words per posting: the sort gives it, a counting sort would expand it
         words = np.concatenate([w for w, _ in blocks]) if len(blocks) > 1 else blocks[0][0]
