@@ -33,6 +33,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import contextlib
 import json
 import shutil
 import subprocess
@@ -56,6 +57,20 @@ SHARED = HERE.parent.parent / "shared" / "data"
 # ---------------------------------------------------------------------------- helpers
 def load() -> float:
     return round(os.getloadavg()[0], 2)
+
+
+def machine_memory_gb() -> dict[str, float]:
+    """The machine's free memory and page cache (``/proc/meminfo``): fresh memory costs an add
+    much more when the page cache has to be reclaimed for it first (an add at 10k took 0.55 ms
+    on average in a run right after the 10^6-entry map's files had filled the cache, 0.14-0.18
+    in the next two)."""
+    out = {}
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            key, _, rest = line.partition(":")
+            if key in ("MemFree", "MemAvailable", "Cached"):
+                out[key] = round(int(rest.split()[0]) / 2**20, 2)
+    return out
 
 
 def memory_gb() -> dict[str, float]:
@@ -144,6 +159,7 @@ def adds_child(where: str, maintenance: str, n: int, baseline: str | None) -> No
     db = mod.Database(voc, path, cfg)
     times, cpu = [], []
     start_load = load()
+    machine = machine_memory_gb()
     process0 = time.process_time()
     period = 0.01 if maintenance == "paced" else 0.0
     next_at = time.perf_counter()
@@ -162,7 +178,7 @@ def adds_child(where: str, maintenance: str, n: int, baseline: str | None) -> No
            # CPU time: what an add costs whatever else runs on the machine
            "add_cpu_ms": {"mean_adding_thread": round(float(np.mean(cpu)) * 1e3, 4),
                           "mean_all_threads": round(process_ms, 4)},
-           "load": [start_load, load()]}
+           "load": [start_load, load()], "machine_memory_gb_at_start": machine}
     db.close()
     if path is not None:
         shutil.rmtree(path.parent, ignore_errors=True)

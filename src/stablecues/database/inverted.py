@@ -41,10 +41,11 @@ from .segments import MemorySink, MergeJob, Segment, Sink, empty_postings, pack_
 log = logging.getLogger(__name__)
 
 FAN_IN = 4  # sealed blocks sorted together into one segment (a group)
-# segments of one size class merged together: 8 rather than 4 rewrites each posting a third
-# fewer times (log_8 rather than log_4 of n / group) for at most 7 rather than 3 segments per
-# class at query time (bench_scale.py: adds at 10k, and queries at 10^5 and 10^6, both measured)
-MERGE_FAN_IN = 8
+# segments of one size class merged together. 8 was measured too (bench_scale.py): it saves
+# the adds at 10k about 0.01-0.02 ms of merging, but rebuilt maps then held 15 segments where
+# 4 leaves 9-10, and their queries took 16.9-22.5 ms at 10^5 entries (4: 15.7) and 23.7-27.7 ms
+# p50, 28.6-35.3 p90 at 10^6 (4: 23.9 / 28.7)
+MERGE_FAN_IN = 4
 MAX_BLOCKS = 2 * FAN_IN  # sealed blocks waiting to be sorted before an add helps the maintenance
 MAX_SEGMENTS = 48  # beyond this many segments an add helps the background maintenance
 
