@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import cv2
 import numpy as np
@@ -136,7 +136,8 @@ def cull(
 
 def _multiply(img: np.ndarray, scalar: tuple[float, ...]) -> np.ndarray:
     """``img`` times a per-channel scalar (4 values), saturating."""
-    return cv2.multiply(img, scalar)  # type: ignore[call-overload]
+    # Any: OpenCV 5.0's stubs take no tuple scalar here, 5.1's do
+    return cv2.multiply(img, cast(Any, scalar))
 
 
 def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
