@@ -329,10 +329,11 @@ def expected_size(form: int, n_words: int, lo: int, hi: int, n_postings: int) ->
 class FileSink:
     """Writes a segment file in chunks (postings streamed, tables at the end, header last).
 
-    Every step is bounded: a word-form table (the word of each posting) is filled chunk by
-    chunk as the postings arrive, and the tables are written ``budget`` bytes a step, so
-    finishing a segment never makes one pass over all its postings or words at once (at 2M
-    postings and 10^6 words that pass took 18-27 ms of one add, ``bench_scale.py``).
+    Finishing takes bounded steps: a word-form table (the word of each posting) is filled chunk
+    by chunk as the postings arrive, not expanded from the counts at the end (at 2M postings and
+    10^6 words that expansion and the copy after it took 18-27 ms of one add, ``bench_scale.py``);
+    a CSR table is one cumulative sum over the counts, in a step of its own; the tables are then
+    written ``budget`` bytes a step.
     """
 
     def __init__(
