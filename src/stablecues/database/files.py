@@ -187,6 +187,7 @@ class IndexFiles:
         self._save = save_manifest
         self._rebuild = rebuild
         self.next_gen = next_gen
+        self._discarding: list[threading.Thread] = []
 
     def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
         path = self.directory / f"seg-{self.next_gen:08d}.sci"
@@ -210,7 +211,16 @@ class IndexFiles:
         paths = [self.directory / s.name for s in segments
                  if s.name is not None and _SEGMENT_NAME.fullmatch(s.name)]
         if paths:
-            threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True).start()
+            thread = threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True)
+            thread.start()
+            self._discarding = [t for t in self._discarding if t.is_alive()] + [thread]
+
+    def wait_discarded(self, timeout: float = 60.0) -> None:
+        """Wait until the replaced files handed to :meth:`discard` so far are deleted (a
+        compaction hands their space back before it returns)."""
+        deadline = time.monotonic() + timeout
+        for thread in list(self._discarding):
+            thread.join(max(deadline - time.monotonic(), 0.0))
 
     def rebuild(self, lo: int, hi: int) -> list[Segment]:
         return self._rebuild(lo, hi)

@@ -613,6 +613,8 @@ class Database:
         with self._add_lock:
             self._writable()
             self.index.compact()
+        if self._files is not None:  # the replaced segment files' space, back before returning
+            self._files.wait_discarded()
         if vacuum:
             try:
                 with self._sql.lock:
