@@ -268,14 +268,15 @@ class Sink(Protocol):
     def abort(self) -> None: ...
 
 
-def _table(counts: np.ndarray, csr: bool) -> np.ndarray:
+def _table(counts: np.ndarray, csr: bool, w0: int = 0) -> np.ndarray:
     """A segment's word table from the (W,) count of postings of every word: the CSR indptr
-    (W + 1,) int64, or the (P,) int32 word of every posting."""
+    (W + 1,) int64, or the (P,) int32 word of every posting (the words counted from ``w0``:
+    a chunk's part of the table)."""
     if csr:
         indptr = np.zeros(counts.shape[0] + 1, "<i8")
         np.cumsum(counts, out=indptr[1:])
         return indptr
-    return np.repeat(np.arange(counts.shape[0], dtype="<i4"), counts)
+    return np.repeat(np.arange(w0, w0 + counts.shape[0], dtype="<i4"), counts)
 
 
 class MemorySink:
@@ -346,8 +347,9 @@ class FileSink:
         self.f.write(bytes(HEADER_SIZE))
         self.crc = 0
         self.size = 0
-        self.counts = np.zeros(n_words, np.int64)
-        # the word of every posting so far (word form only); ``total``: the postings expected
+        # what the table is made of: each word's count (CSR), or the word of every posting so
+        # far (word form; ``total``: the postings expected)
+        self.counts: np.ndarray | None = np.zeros(n_words, np.int64) if csr else None
         self._words: np.ndarray | None = None if csr else np.empty(max(int(total), 0), "<i4")
         self._parts: list[np.ndarray] | None = None  # the tables and sessions as bytes, once made
         self._part = 0
@@ -365,11 +367,11 @@ class FileSink:
                 grown = np.empty(max(2 * self._words.shape[0], self.size + n), "<i4")
                 grown[: self.size] = self._words[: self.size]
                 self._words = grown
-            self._words[self.size : self.size + n] = np.repeat(
-                np.arange(w0, w0 + counts.shape[0], dtype="<i4"), counts)
+            self._words[self.size : self.size + n] = _table(counts, False, w0)
         self._write(postings)
         self.size += n
-        self.counts[w0 : w0 + counts.shape[0]] += counts
+        if self.counts is not None:
+            self.counts[w0 : w0 + counts.shape[0]] += counts
 
     def finish(self, sessions: np.ndarray) -> Segment:
         while True:
@@ -381,7 +383,7 @@ class FileSink:
         """Write the tables a slice of ``budget`` bytes at a time (a 10^6-word table is 8 MB);
         returns the segment once the file is complete, else None."""
         if self._parts is None:
-            if self.csr:
+            if self.counts is not None:
                 table = _table(self.counts, True)
             else:
                 assert self._words is not None
