@@ -204,6 +204,8 @@ def run_adds(repeat: int, n: int, baseline: str | None) -> dict[str, Any]:
                            for k in runs[0]["add_cpu_ms"]},
             "runs": [x["add_ms"] for x in runs],
             "load": [x["load"] for x in runs],
+            # page faults on fresh memory decide the tail: a full page cache makes them slower
+            "machine_memory_gb_at_start": [x["machine_memory_gb_at_start"] for x in runs],
             "features_mean": runs[0]["features_mean"], "source": runs[0]["source"],
         }
     return out
