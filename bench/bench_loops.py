@@ -71,6 +71,7 @@ SWITCHES: dict[str, dict[str, Any]] = {
     "- fundamental thresholds (12 inliers, no ratio, RANSAC)": {
         "verification": {"min_fundamental_inliers": 12, "min_fundamental_ratio": 0.0,
                          "fundamental_method": "ransac"}},
+    "- static matches kept (none left out at 0.5 px)": {"verification": {"static_px": None}},
     "+ temporal window k = 2": {"query": {"temporal_k": 2}},
     "+ temporal window k = 3 (DLoopDetector)": {"query": {"temporal_k": 3}},
     "+ monocular triangles": {"monocular": {}},

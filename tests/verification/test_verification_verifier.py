@@ -271,3 +271,41 @@ def test_feature_weights_are_checked() -> None:
                  arrays={"weights": c.weights})
     view = Verifier(camera=CAM, noise=NOISE).view_of_entry(good)
     assert view.weights is c.weights
+
+
+def _with_overlay(q: View, c: View, n: int = 60, seed: int = 11) -> tuple[View, View]:
+    """Both views with the same ``n`` extra features at the same pixels (an overlay fixed to the
+    camera: a timestamp, the vehicle's bonnet)."""
+    rng = np.random.default_rng(seed)
+    kp = np.c_[rng.uniform(10, 300, n), rng.uniform(10, 60, n)]
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+    def add(v: View) -> View:
+        f = v.features
+        return View(_features(np.r_[f.keypoints, kp], np.r_[f.descriptors, desc]))
+
+    return add(q), add(c)
+
+
+def test_matches_fixed_to_the_camera_are_left_out() -> None:
+    """Features at the same pixels in both images fit every fundamental matrix: with them an
+    unrelated pair passes; ``static_px`` leaves them out, and a true pair still passes."""
+    fundamental = merge(preset("default"), {"method": "fundamental"})
+    assert fundamental.static_px == 0.5  # the default
+    keep_all = merge(fundamental, {"static_px": None})
+    q, c, _, _ = _scene(7, rigid=False)
+    assert not Verifier(keep_all, CAM).verify(View(q.features), View(c.features)).accepted
+    qo, co = _with_overlay(q, c)
+    fooled = Verifier(keep_all, CAM).verify(qo, co)
+    assert fooled.accepted and fooled.n_inliers >= 60
+    res = Verifier(fundamental, CAM).verify(qo, co)
+    assert not res.accepted and res.n_matches < fooled.n_matches - 50
+    assert (res.matches.query < len(q.features)).all()  # no overlay feature among the matches
+    q, c, _, _ = _scene(7)
+    qo, co = _with_overlay(q, c)
+    res = Verifier(fundamental, CAM).verify(qo, co)
+    assert res.accepted and (res.matches.query < len(q.features)).all()
+    # the presets that reproduce published methods keep every match
+    assert preset("paper").static_px is None and preset("dloop").static_px is None
+    with pytest.raises(ConfigError, match="static_px"):
+        merge(fundamental, {"static_px": -1.0})

@@ -174,6 +174,11 @@ class Verifier:
             max_distance=cfg.max_distance,
             cross_check=cfg.cross_check,
         )
+        if cfg.static_px is not None and len(matches):
+            moved = np.linalg.norm(query.features.keypoints[matches.query].astype(np.float64)
+                                   - candidate.features.keypoints[matches.candidate], axis=1) > cfg.static_px
+            if not moved.all():
+                matches = matches.subset(moved)
         timings = {"matching": (time.perf_counter() - t0) * 1e3}
         configured = Method(cfg.method)
         method = self._method_for(configured, query, candidate)
