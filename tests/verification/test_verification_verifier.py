@@ -301,6 +301,7 @@ def test_matches_fixed_to_the_camera_are_left_out() -> None:
     res = Verifier(fundamental, CAM).verify(qo, co)
     assert not res.accepted and res.n_matches < fooled.n_matches - 50
     assert (res.matches.query < len(q.features)).all()  # no overlay feature among the matches
+    assert "matches at the same pixels in both images left out" in res.reason
     q, c, _, _ = _scene(7)
     qo, co = _with_overlay(q, c)
     res = Verifier(fundamental, CAM).verify(qo, co)

@@ -620,9 +620,20 @@ class Database:
                 with self._sql.lock:
                     self._sql.conn.execute("VACUUM")
                     if self.path is not None:  # hand the space back now, not at the next checkpoint
-                        self._sql.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                        self._truncate_log()
             except sqlite3.DatabaseError as exc:
                 raise DatabaseError(f"{self._where()}: cannot compact the file ({exc})") from exc
+
+    def _truncate_log(self, tries: int = 100) -> None:
+        """Copy the whole log into the file and empty it. A checkpoint of the log-copying thread
+        in progress makes SQLite answer busy (a row, not an error): try again until it is done."""
+        for attempt in range(tries):
+            busy = self._sql.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
+            if not busy:
+                return
+            time.sleep(0.001 * min(attempt + 1, 20))
+        log.warning("%s: the log could not be emptied now (a reader holds it); it empties later",
+                    self._where())
 
     def flush(self) -> None:
         """Finish the index maintenance now: sort the latest additions and merge segments

@@ -174,27 +174,29 @@ class Verifier:
             max_distance=cfg.max_distance,
             cross_check=cfg.cross_check,
         )
+        static = 0
         if cfg.static_px is not None and len(matches):
             moved = np.linalg.norm(query.features.keypoints[matches.query].astype(np.float64)
                                    - candidate.features.keypoints[matches.candidate], axis=1) > cfg.static_px
-            if not moved.all():
+            static = len(matches) - int(np.count_nonzero(moved))
+            if static:
                 matches = matches.subset(moved)
         timings = {"matching": (time.perf_counter() - t0) * 1e3}
         configured = Method(cfg.method)
         method = self._method_for(configured, query, candidate)
         fallback = method is not configured
         if len(matches) < must_beat:
-            ctx = _Context(query, candidate, matches, method, fallback, t0, timings)
+            ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static)
             return ctx.finish(Status.OUTRANKED, f"{len(matches)} matches cannot reach the {must_beat} "
                                                 "inliers of a loop already accepted (not checked)")
         if fallback and not cfg.fallback:
-            ctx = _Context(query, candidate, matches, configured, False, t0, timings)
+            ctx = _Context(query, candidate, matches, configured, False, t0, timings, static)
             return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")
         if fallback:
             logger.debug("no 3D points for %s: falling back to %s", cfg.method, method.value)
         if method is Method.TRIANGLES and not _metric(query.points, candidate.points):
             method = Method.SIMILAR_TRIANGLES  # a monocular side: its scale is unknown
-        ctx = _Context(query, candidate, matches, method, fallback, t0, timings)
+        ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static)
         return self._checks[method](ctx)
 
     @property
@@ -410,6 +412,7 @@ class _Context:
     fallback: bool
     t0: float
     timings: dict[str, float]
+    static: int = 0  # matches left out as fixed to the camera (``static_px``)
 
     def finish(
         self, status: Status, reason: str, *, inliers: np.ndarray | None = None, **geometry: Any
@@ -418,6 +421,8 @@ class _Context:
         optional fields (triangles, pose, fundamental matrix) of :class:`Verification`."""
         self.timings["total"] = (time.perf_counter() - self.t0) * 1e3
         m = self.matches
+        if self.static:
+            reason += f"; {self.static} matches at the same pixels in both images left out"
         return Verification(
             accepted=status is Status.ACCEPTED,
             method=self.method,
