@@ -306,6 +306,8 @@ def test_matches_fixed_to_the_camera_are_left_out() -> None:
     qo, co = _with_overlay(q, c)
     res = Verifier(fundamental, CAM).verify(qo, co)
     assert res.accepted and (res.matches.query < len(q.features)).all()
+    same = Verifier(fundamental, CAM).verify(qo, qo)  # the same view twice: nothing is an overlay
+    assert same.accepted and same.n_matches == len(qo.features) and "left out" not in same.reason
     # the presets that reproduce published methods keep every match
     assert preset("paper").static_px is None and preset("dloop").static_px is None
     with pytest.raises(ConfigError, match="static_px"):

@@ -76,7 +76,9 @@ class VerificationConfig:
             0.5 px: ORB puts the same image content at the same coordinates, and a true match
             between two visits moves more (bench_loops.py: no loop of the development sets lost,
             the swapped-objects sets without the network 0.0 -> 0.78; 1.5 px lost one). None:
-            keep all (the ``paper`` and ``dloop`` presets, as published).
+            keep all (the ``paper`` and ``dloop`` presets, as published). When the static
+            matches are more than half the frame's features the frame is the candidate seen
+            again from the same pose (or the same image twice), and they are kept.
     """
 
     method: str = "triangles"
