@@ -304,6 +304,45 @@ def test_paths_with_uri_characters_are_used_as_given(
         assert len(db) == 3
 
 
+def test_adds_wake_the_log_copying_thread(tmp_path: Path) -> None:
+    """The log-copying thread copies as soon as the adding thread has written ``wake_bytes``,
+    not only every ``every_s`` (adds back to back would fill SQLite's backstop meanwhile)."""
+    import threading
+
+    from stablecues.database.files import LogCheckpointer
+
+    path = tmp_path / "log.sqlite"
+    conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("PRAGMA wal_autocheckpoint=0")
+    conn.execute("CREATE TABLE t (x BLOB)")
+    rounds: list[tuple[int, int]] = []
+    copied = threading.Event()
+
+    class Counting(LogCheckpointer):
+        def checkpoint(self, c: sqlite3.Connection) -> tuple[int, int]:
+            res = super().checkpoint(c)
+            rounds.append(res)
+            if res[0] and res[1] == res[0]:
+                copied.set()
+            return res
+
+    ck = Counting(path, threading.RLock(), "NORMAL", every_s=3600, wake_bytes=100_000)
+    try:
+        for _ in range(3):
+            conn.execute("INSERT INTO t VALUES (?)", (os.urandom(20_000),))
+            ck.wrote(20_000)
+        time.sleep(0.3)
+        assert rounds == []  # 60 kB written: still asleep
+        for _ in range(3):
+            conn.execute("INSERT INTO t VALUES (?)", (os.urandom(20_000),))
+            ck.wrote(20_000)
+        assert copied.wait(30)  # 120 kB: woken, the whole log copied into the file
+    finally:
+        ck.close()
+        conn.close()
+
+
 def test_the_log_stays_short_when_adds_come_back_to_back(voc: Vocabulary, tmp_path: Path) -> None:
     """Entries of ~40 kB added as fast as possible (the log-copying thread cannot drain the log
     then): SQLite's backstop checkpoint keeps the log near 2 MB, not growing with the map."""

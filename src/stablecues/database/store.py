@@ -512,6 +512,9 @@ class Database:
             if self._held is not None and held is not None:
                 self._held[eid] = held
             index.add(bow.words, weights, sess)
+            checkpointer = self._checkpointer
+            if checkpointer is not None:
+                checkpointer.wrote(len(bow_blob) + len(payload_blob) + len(meta_text))
         return eid
 
     def _payload(
