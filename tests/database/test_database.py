@@ -8,6 +8,7 @@ import sqlite3
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import pytest
 import dbkit
 from dbkit import fake_features, fill
 from stablecues.database import Database, InvertedIndex
+from stablecues.database.files import LogCheckpointer
 from stablecues.errors import DatabaseError, InputError
 from stablecues.types import Features
 from stablecues.vocabulary import Scoring, Vocabulary, save_vocabulary, score, train_vocabulary
@@ -307,10 +309,6 @@ def test_paths_with_uri_characters_are_used_as_given(
 def test_adds_wake_the_log_copying_thread(tmp_path: Path) -> None:
     """The log-copying thread copies as soon as the adding thread has written ``wake_bytes``,
     not only every ``every_s`` (adds back to back would fill SQLite's backstop meanwhile)."""
-    import threading
-
-    from stablecues.database.files import LogCheckpointer
-
     path = tmp_path / "log.sqlite"
     conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
     conn.execute("PRAGMA journal_mode=WAL")

@@ -285,7 +285,7 @@ class LogCheckpointer:
             return
         try:
             conn.execute(f"PRAGMA synchronous={self.synchronous}")
-            while not self._stop.is_set():
+            while True:
                 self._wake.wait(self.every_s)
                 if self._stop.is_set():
                     break
