@@ -280,9 +280,11 @@ def test_concurrent_reader_sees_new_entries_after_refresh(
     path = tmp_path / "db.sqlite"
     writer = Database(voc, path)
     fill(writer, voc, images[:10])
+    writer.flush()  # every add in SQLite, where readers look
     reader = Database(voc, path, readonly=True)
     assert len(reader) == 10
     fill(writer, voc, images[10:15])
+    writer.flush()
     assert len(reader) == 10
     assert reader.refresh() == 5 and len(reader) == 15
     bow, _ = voc.transform(images[12])

@@ -52,7 +52,7 @@ def remove_database(db_path: str | Path) -> None:
     """Delete a database file, its SQLite side files and its index directory (only the files
     stablecues writes there)."""
     path = Path(db_path)
-    for suffix in ("", "-wal", "-shm", "-journal"):
+    for suffix in ("", "-wal", "-shm", "-journal", "-entries"):
         Path(str(path) + suffix).unlink(missing_ok=True)
     d = index_dir(path)
     if d.is_dir() and not d.is_symlink():
@@ -173,12 +173,14 @@ class IndexFiles:
         save_manifest: writes the manifest into the database (one transaction).
         rebuild: segments of entries ``lo .. hi - 1`` built from the database's entries.
         next_gen: first free file number.
+        after_commit: runs a function once the manifests saved so far are committed (a
+            manifest saved behind the adds); False when it never will (default: at once).
     """
 
     def __init__(
         self, directory: Path, uuid: bytes, n_words: int, fsync: bool,
         save_manifest: Callable[[str], None], rebuild: Callable[[int, int], list[Segment]],
-        next_gen: int,
+        next_gen: int, after_commit: Callable[[Callable[[], None]], bool] | None = None,
     ) -> None:
         self.directory = directory
         self.uuid = uuid
@@ -187,6 +189,7 @@ class IndexFiles:
         self._save = save_manifest
         self._rebuild = rebuild
         self.next_gen = next_gen
+        self._after_commit = after_commit
         self._discarding: list[threading.Thread] = []
 
     def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
@@ -210,17 +213,26 @@ class IndexFiles:
         wait for it. A file left by a process that ended meanwhile is deleted at the next open."""
         paths = [self.directory / s.name for s in segments
                  if s.name is not None and _SEGMENT_NAME.fullmatch(s.name)]
-        if paths:
-            thread = threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True)
+        if not paths:
+            return
+        thread = threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True)
+        self._discarding = [t for t in self._discarding if t.is_alive() or not t.ident] + [thread]
+        # only once the manifest that no longer names them is committed
+        if self._after_commit is not None:
+            if not self._after_commit(thread.start):  # never committed: the next open deletes them
+                self._discarding.remove(thread)
+        else:
             thread.start()
-            self._discarding = [t for t in self._discarding if t.is_alive()] + [thread]
 
     def wait_discarded(self, timeout: float = 60.0) -> None:
         """Wait until the replaced files handed to :meth:`discard` so far are deleted (a
         compaction hands their space back before it returns)."""
         deadline = time.monotonic() + timeout
         for thread in list(self._discarding):
-            thread.join(max(deadline - time.monotonic(), 0.0))
+            while not thread.ident and time.monotonic() < deadline:  # not started yet
+                time.sleep(0.001)
+            if thread.ident:
+                thread.join(max(deadline - time.monotonic(), 0.0))
 
     def rebuild(self, lo: int, hi: int) -> list[Segment]:
         return self._rebuild(lo, hi)
@@ -252,7 +264,7 @@ class LogCheckpointer:
         synchronous: the writer's ``PRAGMA synchronous`` (the checkpoint syncs as it does).
         every_s: how often to look at the log.
         locked_pages: most log pages copied while adds wait.
-        slow_s: no copying while adds wait after a checkpoint that took this long.
+        slow_s: no copying while the writer waits after a checkpoint that took this long.
         wake_bytes: :meth:`wrote` wakes the thread once this much was written since its last
             round, so that it keeps up with adds back to back (57-75 kB entries at 500 a
             second fill SQLite's backstop within one ``every_s``: the backstop then ran in
@@ -261,7 +273,7 @@ class LogCheckpointer:
 
     def __init__(
         self, db_path: Path, lock: threading.RLock, synchronous: str, every_s: float = 0.05,
-        locked_pages: int = 256, slow_s: float = 0.005, wake_bytes: int = 512 * 1024,
+        locked_pages: int = 256, slow_s: float = 0.02, wake_bytes: int = 512 * 1024,
     ) -> None:
         self.uri = f"{db_path.resolve().as_uri()}?mode=rw"
         self.lock = lock
@@ -310,9 +322,11 @@ class LogCheckpointer:
                 continue
             if frames - copied <= self.locked_pages:
                 break
-        # the last few pages while adds wait, unless the disk is slow to sync just now (the
-        # log then grows a little until a later round)
-        if 0 < frames - copied <= self.locked_pages and took < self.slow_s:
+        # the last few pages while the writer waits, unless the disk is slow to sync just now
+        # (the log then grows a little until a later round); also when all was copied: a
+        # writer that began its transaction while this one copied does not start the log
+        # over, and one that never pauses (the entry log's thread) would always have
+        if frames > 0 and frames - copied <= self.locked_pages and took < self.slow_s:
             with self.lock:
                 busy, frames, copied = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
         return frames, copied

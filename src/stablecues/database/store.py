@@ -1,24 +1,28 @@
 """The topological database: BoW vectors (inverse index), direct index, keypoints,
 descriptors, 3D points and metadata per entry, persisted in an embedded SQLite file.
 
-Durability: every :meth:`Database.add` is one SQLite statement in WAL mode (atomic), so a
-process killed in the middle of an add loses at most that entry and never earlier ones. The
-inverse index is kept next to the file in ``<file>-index/`` as memory-mapped segment files
-named by a manifest inside the database (see :mod:`.files`), so reopening a map maps a few
-files instead of rebuilding the index entry by entry; only the latest additions (at most a
-few blocks of ``tail_postings``) are read back from the entries. Entries are the source of
-truth: a missing or damaged index file is rebuilt from them. Index maintenance (sorting the
-latest additions, merging segments) runs in bounded steps, at most one per add (or in a
-thread of its own), so no add waits for a whole merge; the write-ahead log is copied into
-the file by a thread of its own, so no add waits for the disk either. A database in memory
+Durability: every :meth:`Database.add` to a file is one record appended to the file's entry
+log (``<file>-entries``, see :mod:`.entrylog`) and put into SQLite (WAL mode) from a thread of
+its own, so a process killed in the middle of an add loses at most that entry and never
+earlier ones, and no add waits for SQLite's commits or syncs; the next writer puts whatever
+the log holds beyond SQLite's entries into SQLite before anything else. The inverse index is
+kept next to the file in ``<file>-index/`` as memory-mapped segment files named by a manifest
+inside the database (see :mod:`.files`), so reopening a map maps a few files instead of
+rebuilding the index entry by entry; only the latest additions (at most a few blocks of
+``tail_postings``) are read back from the entries. Entries are the source of truth: a missing
+or damaged index file is rebuilt from them. Index maintenance (sorting the latest additions,
+merging segments) runs in bounded steps, at most one per add (or in a thread of its own), so
+no add waits for a whole merge; the write-ahead log is copied into the file by a thread of its
+own, so no add waits for the disk either. A database in memory
 (no path) holds each entry's arrays as read-only NumPy copies instead of packed blobs: its
 SQLite rows keep the scalars, and nothing is packed or unpacked per add or entry.
 
 One writing Database object per file at a time, and any number of readers (other objects or
 processes, ``readonly=True``; they call :meth:`Database.refresh` to see what the writer has
-done since). One object may be shared by threads: queries from any number of threads while
-one thread adds. The file records the vocabulary's fingerprint and refuses to be used with
-another vocabulary.
+put into SQLite since: its adds within milliseconds, all of them once it calls
+:meth:`Database.flush` or closes). One object may be shared by threads: queries from any
+number of threads while one thread adds. The file records the vocabulary's fingerprint and
+refuses to be used with another vocabulary.
 
 Long-lived maps: every entry belongs to a session (an int; :meth:`Database.new_session`
 starts one); queries can keep to some sessions or leave some out; entries can be removed by
@@ -30,7 +34,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import functools
 import gc
 import json
 import logging
@@ -51,6 +54,7 @@ import numpy as np
 from ..errors import DatabaseError, InputError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
+from .entrylog import EntryWriter, Row, log_path, replay, row_values
 from .files import IndexFiles, LogCheckpointer, Manifest, WriterLock, index_dir, open_segments
 from .inverted import InvertedIndex
 from .packing import pack_arrays, pack_buffer, unpack_arrays
@@ -181,6 +185,7 @@ class Database:
         self._add_lock = threading.RLock()
         self._writer: WriterLock | None = None
         self._checkpointer: LogCheckpointer | None = None
+        self._entries: EntryWriter | None = None  # a file's write-behind (the writer's)
         self._files: IndexFiles | None = None
         self._index: InvertedIndex | None = None
         self._sql = Sql(self._connect(), self._where(), readonly)
@@ -269,21 +274,40 @@ class Database:
             raise DatabaseError(f"{directory}: cannot use the index directory "
                                 f"({exc.strerror or exc})") from exc
         self._writer = lock
+        full = self.config.durability == "full"
+        try:
+            # entries a killed writer left in the entry log go into SQLite before anything reads it
+            with self._sql.snapshot() as conn:
+                n = self._count(conn)
+            replay(log_path(self.path), self._schema.uuid, self._sql, n)
+            # the log's checkpoints (which sync the file) run in a thread of their own; SQLite's
+            # own stay, further apart, as a backstop
+            self._checkpointer = LogCheckpointer(self.path, self._sql.lock, "FULL" if full else "NORMAL")
+            with self._sql.lock:
+                self._sql.conn.execute(f"PRAGMA wal_autocheckpoint={_BACKSTOP_PAGES}")
+                self._sql.conn.execute(f"PRAGMA journal_size_limit={_BACKSTOP_PAGES * 4096}")
+            entries = EntryWriter(log_path(self.path), self._schema.uuid, self._sql, full,
+                                  self._checkpointer.wrote)
+        except BaseException:
+            self._writer = None
+            lock.release()
+            raise
+        self._entries = entries
         manifest = Manifest.parse(self._schema.manifest, self._where())
         self._files = IndexFiles(
-            directory, self._schema.uuid, self.vocabulary.n_words, self.config.durability == "full",
-            self._sql.save_manifest,
-            functools.partial(_load_segments, self._sql, self._schema, self.vocabulary.n_words),
-            manifest.next_gen,
+            directory, self._schema.uuid, self.vocabulary.n_words, full, entries.save_manifest,
+            self._entries_segments, manifest.next_gen, after_commit=entries.after_commit,
         )
-        # the log's checkpoints (which sync the file) run in a thread of their own; SQLite's
-        # own stay, further apart, as a backstop
-        sync = "FULL" if self.config.durability == "full" else "NORMAL"
-        self._checkpointer = LogCheckpointer(self.path, self._sql.lock, sync)
-        with self._sql.lock:
-            self._sql.conn.execute(f"PRAGMA wal_autocheckpoint={_BACKSTOP_PAGES}")
-            self._sql.conn.execute(f"PRAGMA journal_size_limit={_BACKSTOP_PAGES * 4096}")
         return True
+
+    def _drain(self) -> None:
+        """Wait until every add so far is in SQLite (before reading entries there)."""
+        if self._entries is not None:
+            self._entries.drain()
+
+    def _entries_segments(self, lo: int, hi: int) -> list[Segment]:
+        self._drain()
+        return _load_segments(self._sql, self._schema, self.vocabulary.n_words, lo, hi)
 
     def _count(self, conn: sqlite3.Connection) -> int:
         # one aggregate per statement: SQLite reads MAX or MIN alone off the end of the id
@@ -356,6 +380,7 @@ class Database:
 
     def _segments_of(self, lo: int, hi: int) -> list[Segment]:
         """The index of entries ``lo .. hi - 1`` built from their BoW vectors."""
+        self._drain()
         return _load_segments(self._sql, self._schema, self.vocabulary.n_words, lo, hi, self._held)
 
     def refresh(self) -> int:
@@ -393,6 +418,9 @@ class Database:
         held = getattr(self, "_held", None)
         if held is not None:
             held.clear()
+        entries, self._entries = getattr(self, "_entries", None), None
+        if entries is not None:  # what is queued goes into SQLite first
+            entries.close()
         checkpointer, self._checkpointer = self._checkpointer, None
         if checkpointer is not None:
             checkpointer.close()
@@ -400,6 +428,8 @@ class Database:
         if sql is not None:
             with sql.lock:
                 sql.conn.close()
+        if entries is not None:
+            entries.remove_log()
         if self._writer is not None:
             self._writer.release()
             self._writer = None
@@ -497,24 +527,24 @@ class Database:
             self._writable()
             index = self.index
             eid = index.n_entries
-            try:
-                with self._sql.lock:  # one statement: its own transaction, atomic
-                    self._sql.conn.execute(
-                        "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
-                        "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                        (eid, float(timestamp), n, bow_blob, payload_blob, meta_text, sess),
-                    )
-            except sqlite3.IntegrityError as exc:
-                raise DatabaseError(f"{self._where()}: entry {eid} already on disk: another writer "
-                                    "is using this file") from exc
-            except sqlite3.DatabaseError as exc:
-                raise DatabaseError(f"{self._where()}: cannot add entry ({exc})") from exc
+            row = Row(eid, float(timestamp), n, bow_blob, payload_blob, meta_text, sess)
+            entries = self._entries
+            if entries is not None:  # a file: appended to its entry log, SQLite filled behind
+                entries.add(row)
+            else:
+                try:
+                    with self._sql.lock:  # one statement: its own transaction, atomic
+                        self._sql.conn.execute(
+                            "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
+                            "VALUES (?, ?, ?, ?, ?, ?, ?)", tuple(row))
+                except sqlite3.IntegrityError as exc:
+                    raise DatabaseError(f"{self._where()}: entry {eid} already on disk: another writer "
+                                        "is using this file") from exc
+                except sqlite3.DatabaseError as exc:
+                    raise DatabaseError(f"{self._where()}: cannot add entry ({exc})") from exc
             if self._held is not None and held is not None:
                 self._held[eid] = held
             index.add(bow.words, weights, sess)
-            checkpointer = self._checkpointer
-            if checkpointer is not None:
-                checkpointer.wrote(len(bow_blob) + len(payload_blob) + len(meta_text))
         return eid
 
     def _payload(
@@ -572,6 +602,7 @@ class Database:
         where, args = self._removal_filter(ids, session, before, after)
         with self._add_lock:
             self._writable()
+            self._drain()
             try:
                 with self._sql.write() as conn:
                     rows = conn.execute(f"SELECT id FROM entries WHERE removed = 0 AND {where}",
@@ -620,6 +651,7 @@ class Database:
         with self._add_lock:
             self._writable()
             self.index.compact()
+            self._drain()
         if self._files is not None:  # the replaced segment files' space, back before returning
             self._files.wait_discarded()
         if vacuum:
@@ -644,11 +676,13 @@ class Database:
 
     def flush(self) -> None:
         """Finish the index maintenance now: sort the latest additions and merge segments
-        (and, for a file, write them all), so that a reopen reads nothing back."""
+        (and, for a file, write them all, and every entry added so far into SQLite), so that
+        a reopen reads nothing back and readers see every entry."""
         with self._add_lock:
             if not self.readonly:
                 self._writable()
             self.index.flush()
+            self._drain()
 
     # ------------------------------------------------------------------ reading
     def query(
@@ -725,6 +759,10 @@ class Database:
     def _row(self, eid: int, columns: str) -> tuple[Any, ...]:
         if not 0 <= eid < len(self):
             raise InputError(f"entry id {eid} outside 0..{len(self) - 1}")
+        entries = self._entries
+        pending = entries.pending(eid) if entries is not None else None
+        if pending is not None:  # added, not in SQLite yet (a pending entry is never removed)
+            return row_values(pending, columns)
         rows = self._sql.rows(f"SELECT {columns}, {self._schema.removed_sql} FROM entries WHERE id = ?",
                               (eid,), f"entry {eid}")
         if not rows:
@@ -794,6 +832,7 @@ class Database:
         if sql_name is None:
             raise InputError(f"unknown entry column {name!r}; known: timestamp, n_features, session, meta")
         n = len(self)
+        self._drain()
         rows = self._sql.rows(f"SELECT id, {sql_name}, {self._schema.removed_sql} FROM entries "
                               "WHERE id < ? ORDER BY id", (n,))
         where = self._where()
@@ -827,6 +866,7 @@ class Database:
             the problems found (empty: all good).
         """
         n = len(self)
+        self._drain()
         bad = [(s, p) for s in self.index.segments if (p := verify_segment(s, n)) is not None]
         problems = [p for _, p in bad]
         rows = self._sql.rows("PRAGMA quick_check", what="the file's integrity")
@@ -847,7 +887,7 @@ class Database:
         disk (database, its log and its index files)."""
         file_bytes = 0
         if self.path is not None:
-            for suffix in ("", "-wal"):
+            for suffix in ("", "-wal", "-entries"):
                 f = Path(str(self.path) + suffix)
                 if f.exists():
                     file_bytes += f.stat().st_size

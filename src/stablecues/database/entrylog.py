@@ -1,0 +1,377 @@
+"""Write-behind for a map file: an add is durable once it is appended to the entry log, and
+SQLite is filled from a thread of its own.
+
+Why: SQLite syncs its write-ahead log's header in whichever connection writes first after the
+log starts over (``synchronous=NORMAL`` included; SQLite ticket ff5be73dee), about every 8
+back-to-back adds once the log-copying thread keeps the log drained. On a virtual disk such a
+sync waits for every block the filesystem has still to allocate (segment files being written),
+and single adds of large maps stalled for 50-225 ms inside the INSERT. An append to a file of
+our own never syncs (``durability="normal"``), so the adding thread never waits for the disk.
+
+``map.sqlite-entries`` (the *entry log*): a 32-byte header (magic, the database's uuid), then
+one record per add::
+
+    b"SCE1" | u32 body length | u32 CRC-32 of the body | body
+    body = i64 id | f64 timestamp | i64 n_features | i64 session
+           | u32 len(bow) | u32 len(payload) | u32 len(meta) | bow | payload | meta (UTF-8)
+
+Records are written in id order from the end of the header; once every entry in the log is in
+SQLite the next record is written at the header again (no truncation, no sync), so stale records
+may follow the live ones. Reading back (at open, by the next writer) takes records in order,
+skips those whose id SQLite already holds, and stops at the first record that is torn, fails
+its CRC or does not carry the next id: stale records always carry smaller ids than live ones.
+
+A process killed at any point loses at most the entry whose record was being written (a torn
+record fails its CRC); the entries in the log are put into SQLite before the index is loaded,
+so index and entries agree as before. Manifests (the index's list of segment files) go through
+the same queue after the entries they cover, and replaced segment files are deleted only after
+the manifest that drops them is committed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sqlite3
+import struct
+import threading
+import time
+import zlib
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from ..errors import DatabaseError
+from .schema import MAX_SESSION, Sql
+
+log = logging.getLogger(__name__)
+
+LOG_SUFFIX = "-entries"
+_MAGIC = b"STABLECUES-ELOG\x01"
+HEADER_SIZE = len(_MAGIC) + 16
+_REC = struct.Struct("<4sII")
+_REC_MAGIC = b"SCE1"
+_BODY = struct.Struct("<qdqqIII")
+_MAX_RECORD = 1 << 31  # a record longer than this is not one this code wrote
+#: entries and bytes per SQLite transaction at most: larger ones grow SQLite's log past its
+#: 2 MB backstop (16 MB batches left a 16 MB log), smaller ones commit (and sync) more often
+_BATCH_ENTRIES = 64
+_BATCH_BYTES = 1 << 20
+#: the adding thread waits for SQLite when this much is waiting for it (a disk far slower
+#: than the adds): the entries waiting are held in memory as well as in the log
+MAX_BEHIND_BYTES = 256 << 20
+
+_INSERT = ("INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
+           "VALUES (?, ?, ?, ?, ?, ?, ?)")
+
+
+def log_path(db_path: Path) -> Path:
+    """The entry log of a database file."""
+    return Path(str(db_path) + LOG_SUFFIX)
+
+
+class Row(NamedTuple):
+    """One entry as its SQLite row holds it."""
+
+    id: int
+    timestamp: float
+    n_features: int
+    bow: bytes | bytearray
+    payload: bytes | bytearray
+    meta: str
+    session: int
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.bow) + len(self.payload) + len(self.meta)
+
+
+def encode(row: Row) -> bytes:
+    meta = row.meta.encode()
+    body = b"".join((_BODY.pack(row.id, row.timestamp, row.n_features, row.session, len(row.bow),
+                                len(row.payload), len(meta)), row.bow, row.payload, meta))
+    return _REC.pack(_REC_MAGIC, len(body), zlib.crc32(body)) + body
+
+
+def read_log(path: Path, uuid: bytes, first_id: int) -> tuple[list[Row], str | None]:
+    """The records of ``path`` from id ``first_id`` on, in order.
+
+    Returns:
+        the rows, and why reading stopped before the end of the file's live records (None:
+        it did not), for a warning.
+    """
+    data = path.read_bytes()  # the allocation is the file's own size
+    if len(data) < HEADER_SIZE or data[: len(_MAGIC)] != _MAGIC:
+        raise DatabaseError(f"{path}: not a stablecues entry log (bad header)")
+    if data[len(_MAGIC):HEADER_SIZE] != uuid:
+        raise DatabaseError(f"{path}: entry log of another database (its id differs)")
+    rows: list[Row] = []
+    pos, expected = HEADER_SIZE, first_id
+    view = memoryview(data)
+    while pos + _REC.size <= len(data):
+        magic, length, crc = _REC.unpack_from(data, pos)
+        room = min(_MAX_RECORD, len(data) - pos - _REC.size)
+        if magic != _REC_MAGIC or length < _BODY.size or length > room:
+            break  # the end of what was written last (or a torn record)
+        body = view[pos + _REC.size: pos + _REC.size + length]
+        if zlib.crc32(body) != crc:
+            break
+        eid, ts, n, session, lb, lp, lm = _BODY.unpack_from(body)
+        pos += _REC.size + length
+        if _BODY.size + lb + lp + lm != length:
+            return rows, f"record of entry {eid} has inconsistent lengths"
+        if eid < expected:
+            continue  # already in the database (or a stale record)
+        if eid > expected:
+            break  # a stale record after the live ones
+        if n < 0 or not 0 <= session <= MAX_SESSION:
+            return rows, f"record of entry {eid} has a bad feature count or session"
+        a = _BODY.size
+        try:
+            meta = bytes(body[a + lb + lp: a + lb + lp + lm]).decode()
+        except UnicodeDecodeError:
+            return rows, f"record of entry {eid} has metadata that is not UTF-8"
+        rows.append(Row(eid, ts, n, bytes(body[a: a + lb]), bytes(body[a + lb: a + lb + lp]), meta, session))
+        expected += 1
+    return rows, None
+
+
+class _Call(NamedTuple):
+    fn: Callable[[], None]
+
+
+class _Manifest(NamedTuple):
+    text: str
+
+
+class EntryWriter:
+    """Appends entries to the entry log and puts them (and index manifests) into SQLite from
+    a thread of its own, in the order they came.
+
+    Args:
+        path: the entry log (created; an existing one must have been read back first).
+        uuid: the database's id.
+        sql: the writer's connection.
+        fsync: sync every record (``durability="full"``).
+        committed: called with the bytes of every transaction committed (wakes the log
+            copier).
+    """
+
+    def __init__(self, path: Path, uuid: bytes, sql: Sql, fsync: bool,
+                 committed: Callable[[int], None] | None = None) -> None:
+        self.path = path
+        self.sql = sql
+        self.fsync = fsync
+        self._committed = committed
+        try:
+            self.fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise DatabaseError(f"{path}: cannot open the entry log ({exc.strerror or exc})") from exc
+        try:
+            self._write_all(_MAGIC + uuid, 0)
+            if fsync:
+                os.fsync(self.fd)
+        except DatabaseError:
+            os.close(self.fd)
+            raise
+        self._offset = HEADER_SIZE
+        self._cond = threading.Condition()
+        self._queue: deque[Row | _Manifest | _Call] = deque()
+        self._pending: dict[int, Row] = {}
+        self._behind = 0  # bytes of pending entries
+        self._busy = False
+        self._stop = False
+        self.error: DatabaseError | None = None
+        self._thread = threading.Thread(target=self._run, name="stablecues-entries", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ the adding side
+    def _write_all(self, data: bytes, offset: int) -> None:
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.pwrite(self.fd, view, offset)
+                view, offset = view[n:], offset + n
+        except OSError as exc:
+            raise DatabaseError(f"{self.path}: cannot write the entry log ({exc.strerror or exc})") from exc
+
+    def _check(self) -> None:
+        if self.error is not None:
+            raise self.error
+        if self._stop:
+            raise DatabaseError(f"{self.path}: entry log is closed")
+
+    def add(self, row: Row) -> None:
+        """Append one entry to the log (durable when this returns) and queue it for SQLite."""
+        record = encode(row)
+        with self._cond:
+            self._check()
+            while self._behind > MAX_BEHIND_BYTES and self.error is None:
+                self._cond.wait(0.1)
+            self._check()
+            self._write_all(record, self._offset)
+            if self.fsync:
+                os.fdatasync(self.fd)
+            self._offset += len(record)
+            self._pending[row.id] = row
+            self._behind += row.nbytes
+            self._queue.append(row)
+            self._cond.notify_all()
+
+    def save_manifest(self, text: str) -> None:
+        """Queue the index manifest; it is committed after every entry queued before it."""
+        with self._cond:
+            self._check()
+            self._queue.append(_Manifest(text))
+            self._cond.notify_all()
+
+    def after_commit(self, fn: Callable[[], None]) -> bool:
+        """Run ``fn`` (in the writer thread) once everything queued so far is committed;
+        False (and never run) when the writer has stopped."""
+        with self._cond:
+            if self.error is not None or self._stop:
+                return False  # what it would delete may still be named on disk
+            self._queue.append(_Call(fn))
+            self._cond.notify_all()
+            return True
+
+    def pending(self, eid: int) -> Row | None:
+        """Entry ``eid`` when it is not in SQLite yet."""
+        with self._cond:
+            return self._pending.get(eid)
+
+    def drain(self) -> None:
+        """Wait until everything queued so far is in SQLite."""
+        if threading.current_thread() is self._thread:
+            return
+        with self._cond:
+            while (self._queue or self._busy) and self.error is None and self._thread.is_alive():
+                self._cond.wait(0.1)
+            if self.error is not None:
+                raise self.error
+
+    def close(self) -> None:
+        """Put what is queued into SQLite and stop."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
+        if self.fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+            self.fd = -1
+
+    def remove_log(self) -> None:
+        """Delete the log when everything in it is in SQLite."""
+        if self.error is None and not self._pending:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+
+    # ------------------------------------------------------------------ the writer thread
+    def _take(self) -> tuple[list[Row | _Manifest], _Call | None]:
+        batch: list[Row | _Manifest] = []
+        size = 0
+        while self._queue and len(batch) < _BATCH_ENTRIES and size < _BATCH_BYTES:
+            item = self._queue[0]
+            if isinstance(item, _Call):
+                if not batch:
+                    self._queue.popleft()
+                    return batch, item
+                break
+            self._queue.popleft()
+            batch.append(item)
+            size += item.nbytes if isinstance(item, Row) else len(item.text)
+        return batch, None
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait()
+                if not self._queue:
+                    break
+                batch, call = self._take()
+                self._busy = True
+            try:
+                if call is not None:
+                    call.fn()
+                else:
+                    nbytes = self._commit(batch)
+                    if self._committed is not None:
+                        self._committed(nbytes)
+            except Exception as exc:  # kept for the adding thread; the log keeps the entries
+                what = exc if isinstance(exc, DatabaseError) else DatabaseError(
+                    f"{self.sql.where}: cannot add entries ({exc}); they stay in {self.path} and are "
+                    "written when the map is opened again")
+                with self._cond:
+                    self.error = what
+                    self._busy = False
+                    self._cond.notify_all()
+                log.error("%s", what)
+                return
+            with self._cond:
+                for item in batch:
+                    if isinstance(item, Row):
+                        self._pending.pop(item.id, None)
+                        self._behind -= item.nbytes
+                if not self._pending:
+                    self._offset = HEADER_SIZE  # everything in the log is in SQLite
+                self._busy = False
+                self._cond.notify_all()
+
+    def _commit(self, batch: list[Row | _Manifest]) -> int:
+        rows = [r for r in batch if isinstance(r, Row)]
+        manifests = [m for m in batch if isinstance(m, _Manifest)]
+        try:  # a reader's lock is waited for by the connection's busy timeout
+            with self.sql.write() as conn:
+                if rows:
+                    conn.executemany(_INSERT, [tuple(r) for r in rows])
+                if manifests:  # the last one queued is the one that counts
+                    conn.execute("INSERT OR REPLACE INTO meta VALUES ('index', ?)", (manifests[-1].text,))
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(f"{self.sql.where}: cannot add entries {rows[0].id if rows else ''}.. "
+                                f"({exc}); they stay in {self.path} and are written when the map is "
+                                "opened again") from exc
+        return sum(r.nbytes for r in rows)
+
+
+def replay(path: Path, uuid: bytes, sql: Sql, first_id: int) -> int:
+    """Put the entries of an existing log from id ``first_id`` on into SQLite (a writer that
+    was killed left them there); returns how many. A log that is not this database's is moved
+    aside, with a warning, and nothing is read from it."""
+    if not path.is_file():
+        if path.exists() or path.is_symlink():
+            raise DatabaseError(f"{path}: exists and is not an entry log")
+        return 0
+    try:
+        rows, stopped = read_log(path, uuid, first_id)
+    except DatabaseError as exc:
+        aside = path.with_name(path.name + f".unread-{int(time.time())}")
+        try:
+            path.rename(aside)
+        except OSError as err:
+            raise DatabaseError(f"{exc}; cannot move it aside ({err.strerror or err})") from exc
+        log.warning("%s: moved to %s, nothing read from it", exc, aside.name)
+        return 0
+    if stopped:
+        log.warning("%s: %s; the entries from there on are lost", path, stopped)
+    if rows:
+        try:
+            with sql.write() as conn:
+                conn.executemany(_INSERT, [tuple(r) for r in rows])
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(f"{path}: cannot put its {len(rows)} entries into the database "
+                                f"({exc})") from exc
+        log.info("%s: %d entries put into the database", path, len(rows))
+    return len(rows)
+
+
+def row_values(row: Row, columns: str) -> tuple[Any, ...]:
+    """A pending entry's values of SQL ``columns`` ("timestamp, bow, ..."), as a row gives them."""
+    values = row._asdict()
+    # read-only bytes, as SQLite gives a blob back (unpacked arrays are then read-only too)
+    return tuple(bytes(v) if isinstance(v, bytearray) else v
+                 for v in (values[c.strip()] for c in columns.split(",")))
