@@ -357,6 +357,9 @@ def run_large(name: str, work: Path, n: int, n_features: int, descriptors: bool,
         "build_entries_per_s": round(n / sum(c.get("wall_s", float("nan")) for c in chunks), 1),
         "add_ms_max": max(c["add_ms"].get("max", 0.0) for c in chunks),
         "add_ms_mean": round(1e3 * add_s / n, 4),
+        # an add returns once its entry is in the entry log; closing waits until SQLite holds
+        # every entry (what the SQLite thread had still to write when the adds stopped)
+        "close_s_max": max(c.get("close_s", float("nan")) for c in chunks),
         "peak_rss_gb_build": max(c["peak_rss_gb"] for c in chunks),
         "reopen_s": round(med["reopen_s"], 3),
         "query_ms_p50": round(float(np.median([x["query_ms"]["p50"] for x in reopens])), 3),
