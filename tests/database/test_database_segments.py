@@ -4,6 +4,7 @@ it, before anything is mapped or allocated."""
 from __future__ import annotations
 
 import struct
+import threading
 import zlib
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from stablecues.database.segments import (
     FileSink,
     MergeJob,
     Segment,
+    SegmentWriter,
     header_bytes,
     map_segment,
     pack_postings,
@@ -323,3 +325,67 @@ def test_merge_refuses_entry_ids_out_of_place(engine: str) -> None:
     with pytest.raises(DatabaseError, match="corrupt"):
         while not job.step():
             pass
+
+
+@pytest.mark.parametrize("csr", [False, True])
+def test_a_writer_thread_writes_the_same_file(csr: bool, tmp_path: Path) -> None:
+    """File work done by a SegmentWriter's thread (the index files' way) gives the file the
+    caller's own writes give, and the job waits (doing nothing) until the file is complete."""
+    seg = random_segment(80, seed=4)
+    plain = write(seg, tmp_path / "seg-00000001.sci", csr)
+    writer = SegmentWriter()
+    gate = threading.Event()
+    real_do = FileSink.do
+
+    def slow_do(self: FileSink, op: str, data: object) -> None:
+        gate.wait(30)
+        real_do(self, op, data)
+
+    path = tmp_path / "seg-00000002.sci"
+    try:
+        FileSink.do = slow_do  # type: ignore[method-assign]
+        job = MergeJob([seg], lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, csr, N_WORDS, fsync=False,
+                                                            writer=writer), N_WORDS, chunk=100)
+        job.csr = csr
+        steps = 0
+        while not job.waiting:  # every chunk and table queued: only the file work is left
+            assert not job.step()
+            steps += 1
+            assert steps < 1000
+        assert not path.exists() and not job.step() and job.waiting
+        gate.set()
+        while not job.step():
+            writer.wait(job.sink, 1.0)  # type: ignore[arg-type]
+    finally:
+        FileSink.do = real_do  # type: ignore[method-assign]
+        gate.set()
+        writer.close()
+    assert job.result is not None and np.array_equal(job.result.postings, seg.postings)
+    assert path.read_bytes() == Path(plain.path).read_bytes()  # type: ignore[arg-type]
+
+
+def test_a_writer_threads_failure_fails_the_job_and_abort_leaves_no_file(tmp_path: Path) -> None:
+    seg = random_segment(60, seed=5)
+    writer = SegmentWriter()
+    path = tmp_path / "seg-00000003.sci"
+    real_do = FileSink.do
+
+    def failing(self: FileSink, op: str, data: object) -> None:
+        if op == "write":
+            raise OSError(28, "No space left on device")
+        real_do(self, op, data)
+
+    try:
+        FileSink.do = failing  # type: ignore[method-assign]
+        job = MergeJob([seg], lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, False, N_WORDS, fsync=False,
+                                                            writer=writer), N_WORDS, chunk=50)
+        with pytest.raises(DatabaseError, match=r"seg-00000003\.sci: cannot write index file \(No space"):
+            for _ in range(1000):
+                if job.step():
+                    break
+                writer.wait(job.sink, 1.0)  # type: ignore[arg-type]
+        job.abort()
+    finally:
+        FileSink.do = real_do  # type: ignore[method-assign]
+        writer.close()
+    assert not path.exists()

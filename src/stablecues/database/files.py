@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DatabaseError
-from .segments import FileSink, Segment, map_segment
+from .segments import FileSink, Segment, SegmentWriter, map_segment
 
 log = logging.getLogger(__name__)
 
@@ -190,12 +190,17 @@ class IndexFiles:
         self._rebuild = rebuild
         self.next_gen = next_gen
         self._after_commit = after_commit
+        self.writer = SegmentWriter()  # the files' writes, off the thread that runs the steps
         self._discarding: list[threading.Thread] = []
 
     def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
         path = self.directory / f"seg-{self.next_gen:08d}.sci"
         self.next_gen += 1
-        return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync, total)
+        return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync, total, self.writer)
+
+    def close(self) -> None:
+        """Stop the files' writer thread (after the index's jobs are stopped)."""
+        self.writer.close()
 
     def commit(self, segments: Sequence[Segment]) -> None:
         if self.fsync:

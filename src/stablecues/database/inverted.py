@@ -82,6 +82,10 @@ class _Job:
     dropped: bool = False  # the index was reset while the job ran: its result is thrown away
 
     @property
+    def waiting(self) -> bool:
+        return self.merge is not None and self.merge.waiting
+
+    @property
     def remaining(self) -> int:
         if self.blocks:
             return -1  # flushes first
@@ -341,6 +345,8 @@ class InvertedIndex:
         assert job.merge is not None
         before = job.merge.remaining
         done = job.merge.step()
+        if not done and job.merge.waiting:
+            return False, 0  # its file is being written: nothing was done
         return done, max(before - job.merge.remaining, 1)
 
     def _claim(self) -> _Job | None:
@@ -348,6 +354,7 @@ class InvertedIndex:
         free = [j for j in self._jobs if not j.claimed]
         if not free:
             return None
+        free = [j for j in free if not j.waiting] or free  # one whose file is being written: last
         job = min(free, key=lambda j: j.remaining)
         job.claimed = True
         return job
@@ -481,7 +488,9 @@ class InvertedIndex:
                     self._changed.wait()
                 if self._stop:
                     return
-            self.step()
+            if self.step() == 0:  # only a file being written: let its thread get on with it
+                with self._lock:
+                    self._changed.wait(0.002)
 
     def _has_work(self) -> bool:
         if any(not j.claimed for j in self._jobs):
@@ -501,11 +510,15 @@ class InvertedIndex:
             while True:
                 if self._broken is not None:
                     raise DatabaseError(f"index maintenance failed: {self._broken}")
-                if self.step() is None:
+                work = self.step()
+                if work is None:
                     with self._lock:
                         if not self._jobs and not self._blocks and self._has_no_pending_plan():
                             return
                         self._changed.wait(timeout=0.05)
+                elif work == 0:  # only a file being written
+                    with self._lock:
+                        self._changed.wait(timeout=0.002)
         finally:
             with self._lock:
                 self._flushing -= 1
@@ -528,9 +541,11 @@ class InvertedIndex:
                 break
         try:
             while True:
-                done, _ = self._advance(job)
+                done, work = self._advance(job)
                 if done:
                     break
+                if work == 0:  # only its file being written
+                    time.sleep(0.001)
         except Exception as exc:
             self._failed(job, exc)
             raise

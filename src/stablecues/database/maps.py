@@ -10,6 +10,7 @@ segment files are copied with shifted ids instead of being rebuilt from the entr
 from __future__ import annotations
 
 import sqlite3
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,7 +160,8 @@ def _copy_segment(target: Database, seg: Segment, entry_shift: int, session_shif
     job = MergeJob([seg], sink, index.n_words, index.chunk, shift=entry_shift, session_shift=session_shift)
     try:
         while not job.step():
-            pass
+            if job.waiting:  # its file is being written by the index files' thread
+                time.sleep(0.001)
     except BaseException:
         job.abort()
         raise

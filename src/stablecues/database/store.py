@@ -415,6 +415,9 @@ class Database:
         index, self._index = self._index, None
         if index is not None:
             index.close()
+        files = getattr(self, "_files", None)
+        if files is not None:
+            files.close()
         held = getattr(self, "_held", None)
         if held is not None:
             held.clear()
