@@ -229,3 +229,24 @@ def test_pending_entries_read_as_stored_ones(
                  (before.bow.words, after.bow.words), (extra["u"], after.arrays["u"])):
         assert a is not None and b is not None
         assert np.array_equal(a, b) and a.flags.writeable == b.flags.writeable
+
+
+def test_a_link_or_folder_in_place_of_the_log_is_refused(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    db_path = tmp_path / "map.sqlite"
+    with Database(voc, db_path) as db:
+        fill(db, voc, images[:2])
+    target = tmp_path / "elsewhere.txt"
+    target.write_text("keep me")
+    log_path(db_path).symlink_to(target)
+    with pytest.raises(DatabaseError, match=r"map\.sqlite-entries: exists and is not an entry log"):
+        Database(voc, db_path)
+    assert target.read_text() == "keep me"
+    log_path(db_path).unlink()
+    log_path(db_path).mkdir()
+    with pytest.raises(DatabaseError, match="is not an entry log"):
+        Database(voc, db_path)
+    log_path(db_path).rmdir()
+    with Database(voc, db_path) as db:  # the entries were never touched
+        assert len(db) == 2 and db.entry(1).meta == {"i": 1}

@@ -174,7 +174,7 @@ class EntryWriter:
         self.fsync = fsync
         self._committed = committed
         try:
-            self.fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            self.fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
         except OSError as exc:
             raise DatabaseError(f"{path}: cannot open the entry log ({exc.strerror or exc})") from exc
         try:
@@ -365,9 +365,9 @@ def replay(path: Path, uuid: bytes, sql: Sql, first_id: int) -> int:
     """Put the entries of an existing log from id ``first_id`` on into SQLite (a writer that
     was killed left them there); returns how many. A log that is not this database's is moved
     aside, with a warning, and nothing is read from it."""
-    if not path.is_file():
-        if path.exists() or path.is_symlink():
-            raise DatabaseError(f"{path}: exists and is not an entry log")
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise DatabaseError(f"{path}: exists and is not an entry log (a link or not a file)")
+    if not path.exists():
         return 0
     try:
         rows, stopped = read_log(path, uuid, first_id)

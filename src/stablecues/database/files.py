@@ -260,8 +260,9 @@ class LogCheckpointer:
 
     SQLite starts the log over only when a write begins after everything in it has been
     copied; with a writer that never pauses, that moment would never come and the log would
-    grow. So the bulk is copied while adds go on, and the few pages added meanwhile (at most
-    ``locked_pages``) are copied while ``lock`` holds the next add back.
+    grow. So the bulk is copied while the writer goes on, and the few pages added meanwhile
+    (at most ``locked_pages``) are copied while ``lock`` holds the writer's next transaction
+    back (the entry log's thread: adds themselves never take it).
 
     Args:
         db_path: the database file.

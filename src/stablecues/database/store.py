@@ -91,9 +91,9 @@ class DatabaseConfig:
     """Database settings.
 
     Attributes:
-        durability: "normal" survives a killed process (SQLite WAL, synchronous=NORMAL);
-            "full" also survives power loss (synchronous=FULL, index files synced), at a cost
-            per add.
+        durability: "normal" survives a killed process (an add is durable once its record is
+            in the entry log; SQLite WAL, synchronous=NORMAL); "full" also survives power loss
+            (each record synced, synchronous=FULL, index files synced), at a cost per add.
         store_descriptors: keep keypoints and descriptors (needed by geometric verification).
         cache_entries: how many full entries to keep in memory for :meth:`Database.entry`.
         busy_timeout_s: how long to wait for a lock held by another process.
