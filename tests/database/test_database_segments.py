@@ -3,6 +3,7 @@ it, before anything is mapped or allocated."""
 
 from __future__ import annotations
 
+import os
 import struct
 import threading
 import zlib
@@ -389,3 +390,28 @@ def test_a_writer_threads_failure_fails_the_job_and_abort_leaves_no_file(tmp_pat
         FileSink.do = real_do  # type: ignore[method-assign]
         writer.close()
     assert not path.exists()
+
+
+def test_a_writer_thread_syncs_large_files_as_it_goes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file past SYNC_EVERY bytes is synced by the writer's thread as it is written (its dirty
+    pages stay bounded), and it is the same file."""
+    seg = random_segment(80, seed=6)
+    plain = write(seg, tmp_path / "seg-00000001.sci", False)
+    synced: list[str] = []
+    real = os.fdatasync
+    monkeypatch.setattr(segments, "SYNC_EVERY", 2000)
+    monkeypatch.setattr(os, "fdatasync",
+                        lambda fd: (synced.append(threading.current_thread().name), real(fd)))
+    writer = SegmentWriter()
+    path = tmp_path / "seg-00000002.sci"
+    try:
+        job = MergeJob([seg], lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, False, N_WORDS, fsync=False,
+                                                            writer=writer), N_WORDS, chunk=100)
+        while not job.step():
+            writer.wait(job.sink, 1.0)  # type: ignore[arg-type]
+    finally:
+        writer.close()
+    assert synced and set(synced) == {"stablecues-segments"}
+    assert path.read_bytes() == Path(plain.path).read_bytes()  # type: ignore[arg-type]
