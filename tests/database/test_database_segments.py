@@ -7,6 +7,7 @@ import os
 import struct
 import threading
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -415,3 +416,28 @@ def test_a_writer_thread_syncs_large_files_as_it_goes(
         writer.close()
     assert synced and set(synced) == {"stablecues-segments"}
     assert path.read_bytes() == Path(plain.path).read_bytes()  # type: ignore[arg-type]
+
+
+def test_replaced_segments_are_let_go_by_the_discarding_thread(tmp_path: Path) -> None:
+    """The thread that deletes replaced segment files holds the last references to their
+    mappings (so unmapping them happens there), until it runs."""
+    import gc
+    import weakref
+
+    from stablecues.database.files import IndexFiles
+
+    d = tmp_path / "map.sqlite-index"
+    d.mkdir()
+    files = IndexFiles(d, UUID, N_WORDS, False, lambda text: None, lambda lo, hi: [], 0)
+    seg = write(random_segment(40, seed=7), d / "seg-00000001.sci", False)
+    ref = weakref.ref(seg)
+    start: list[Callable[[], None]] = []
+    files._after_commit = lambda fn: (start.append(fn), True)[1]  # the manifest "commits" below
+    files.discard([seg])
+    del seg
+    gc.collect()
+    assert ref() is not None and (d / "seg-00000001.sci").exists()  # held by the waiting thread
+    start[0]()
+    files.wait_discarded()
+    gc.collect()
+    assert ref() is None and not (d / "seg-00000001.sci").exists()

@@ -144,9 +144,16 @@ class WriterLock:
             self.fd = -1
 
 
-def _unlink(paths: list[Path], step: int = 64 << 20) -> None:
+def _unlink(paths: list[Path], segments: list[Segment] | None = None, step: int = 64 << 20) -> None:
     """Delete files, a large one a slice at a time: freeing gigabytes at once (and, on a disk
-    mounted with ``discard``, trimming them) makes every sync on the disk wait meanwhile."""
+    mounted with ``discard``, trimming them) makes every sync on the disk wait meanwhile.
+    ``segments``: the replaced segments themselves, let go here first, so that unmapping a
+    large file (tearing down the page tables of gigabytes) happens in this thread, not in the
+    one that replaced them: in an instrumented 10^6 build, steps that replaced segments took
+    13-28 ms, 2-6 ms of it CPU, outside every part that was timed, where the last references
+    to the replaced segments were dropped."""
+    if segments is not None:
+        segments.clear()
     for path in paths:
         with contextlib.suppress(OSError):
             fd = os.open(path, os.O_WRONLY)
@@ -220,7 +227,8 @@ class IndexFiles:
                  if s.name is not None and _SEGMENT_NAME.fullmatch(s.name)]
         if not paths:
             return
-        thread = threading.Thread(target=_unlink, args=(paths,), name="stablecues-discard", daemon=True)
+        thread = threading.Thread(target=_unlink, args=(paths, list(segments)), name="stablecues-discard",
+                                  daemon=True)
         self._discarding = [t for t in self._discarding if t.is_alive() or not t.ident] + [thread]
         # only once the manifest that no longer names them is committed
         if self._after_commit is not None:
