@@ -63,7 +63,7 @@ _BATCH_BYTES = 1 << 20
 #: than the adds): the entries waiting are held in memory as well as in the log
 MAX_BEHIND_BYTES = 256 << 20
 
-_INSERT = ("INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
+INSERT_ENTRY = ("INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
            "VALUES (?, ?, ?, ?, ?, ?, ?)")
 
 
@@ -351,7 +351,7 @@ class EntryWriter:
         try:  # a reader's lock is waited for by the connection's busy timeout
             with self.sql.write() as conn:
                 if rows:
-                    conn.executemany(_INSERT, [tuple(r) for r in rows])
+                    conn.executemany(INSERT_ENTRY, [tuple(r) for r in rows])
                 if manifests:  # the last one queued is the one that counts
                     conn.execute("INSERT OR REPLACE INTO meta VALUES ('index', ?)", (manifests[-1].text,))
         except sqlite3.DatabaseError as exc:
@@ -384,7 +384,7 @@ def replay(path: Path, uuid: bytes, sql: Sql, first_id: int) -> int:
     if rows:
         try:
             with sql.write() as conn:
-                conn.executemany(_INSERT, [tuple(r) for r in rows])
+                conn.executemany(INSERT_ENTRY, [tuple(r) for r in rows])
         except sqlite3.DatabaseError as exc:
             raise DatabaseError(f"{path}: cannot put its {len(rows)} entries into the database "
                                 f"({exc})") from exc

@@ -96,13 +96,6 @@ class Sql:
             except sqlite3.DatabaseError as exc:
                 raise DatabaseError(f"{self.where}: cannot read {what} ({exc})") from exc
 
-    def save_manifest(self, text: str) -> None:
-        try:
-            with self.write() as conn:
-                conn.execute("INSERT OR REPLACE INTO meta VALUES ('index', ?)", (text,))
-        except sqlite3.DatabaseError as exc:
-            raise DatabaseError(f"{self.where}: cannot save the index manifest ({exc})") from exc
-
 
 @dataclass
 class Schema:

@@ -54,7 +54,7 @@ import numpy as np
 from ..errors import DatabaseError, InputError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
-from .entrylog import EntryWriter, Row, log_path, replay, row_values
+from .entrylog import INSERT_ENTRY, EntryWriter, Row, log_path, replay, row_values
 from .files import IndexFiles, LogCheckpointer, Manifest, WriterLock, index_dir, open_segments
 from .inverted import InvertedIndex
 from .packing import pack_arrays, pack_buffer, unpack_arrays
@@ -537,9 +537,7 @@ class Database:
             else:
                 try:
                     with self._sql.lock:  # one statement: its own transaction, atomic
-                        self._sql.conn.execute(
-                            "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
-                            "VALUES (?, ?, ?, ?, ?, ?, ?)", tuple(row))
+                        self._sql.conn.execute(INSERT_ENTRY, tuple(row))
                 except sqlite3.IntegrityError as exc:
                     raise DatabaseError(f"{self._where()}: entry {eid} already on disk: another writer "
                                         "is using this file") from exc
