@@ -25,6 +25,10 @@ ablations) on:
   a DBoW2-style top-1 retrieval with its raw score swept (no normalisation, no islands, no
   temporal window, no geometry), and the loss funnel of each run (where the true loops were lost).
 
+* ``viewpoint`` (not in the default sections): the nearest-viewpoint walk's settings around
+  the default's on the corridor and the two revisit sets:
+  ``python bench/bench_loops.py --sections viewpoint``.
+
 * ``sift`` (not in the default sections; issue 14): SIFT with the shipped float vocabulary
   against ORB with the shipped binary one, on the corridor and the two revisit sets, BoW stages
   only: ``python bench/bench_loops.py --sections sift --out bench/results/sift.json``.
@@ -68,6 +72,7 @@ SWITCHES: dict[str, dict[str, Any]] = {
     "- run-aware window (a fixed 20 frames)": {"query": {"run_break": None}},
     "- several islands (verify 1, as DLoopDetector)": {"query": {"islands_verified": 1}},
     "- refined entry (the island's best, as DLoopDetector)": {"query": {"refine": 0}},
+    "- nearest-viewpoint walk (the entry with the most inliers)": {"query": {"viewpoint_steps": 0}},
     "- fundamental thresholds (12 inliers, no ratio, RANSAC)": {
         "verification": {"min_fundamental_inliers": 12, "min_fundamental_ratio": 0.0,
                          "fundamental_method": "ransac"}},
@@ -432,6 +437,37 @@ def bench_revisits(network: bool) -> dict[str, Any]:
     return out
 
 
+def bench_viewpoint(network: bool) -> dict[str, Any]:
+    """The nearest-viewpoint walk's settings (``query.viewpoint_*``) around the default's, on the
+    corridor and the two revisit sets (exact cell): is the figure a plateau or a peak?"""
+    dev = SHARED / "camvid_revisit_dev"
+    sets = {"corridor": open_dataset(SHARED / "corridor", format="vprbench")}
+    sets.update({name: open_dataset(dev / name / "frames", format="folder") for name in REVISITS})
+    truth = {"corridor": sets["corridor"].ground_truth()}
+    truth.update({name: load_ground_truth(dev / name / "gt.png") for name in REVISITS})
+    grid: dict[str, dict[str, Any]] = {"no walk (viewpoint_steps 0)": {"viewpoint_steps": 0}}
+    for scale in (0.10, 0.15, 0.20):
+        for margin in (0.03, 0.05, 0.08):
+            grid[f"start {scale:.2f}, margin {margin:.2f}"] = {"viewpoint_scale": scale,
+                                                               "viewpoint_margin": margin}
+    grid["start 0.15, margin 0.05, inlier floor 0.5"] = {"viewpoint_inliers": 0.5}
+    grid["start 0.15, margin 0.05, no inlier floor"] = {"viewpoint_inliers": 0.0}
+    grid["start 0.15, margin 0.05, 6 steps"] = {"viewpoint_steps": 6}
+    out: dict[str, Any] = {"protocol": "exact cell, no exclusion window (as the revisits section)",
+                           "default": {k: v for k, v in vars(preset("default").query).items()
+                                       if k.startswith("viewpoint")}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, over in grid.items():
+            row = {}
+            for name, ds in sets.items():
+                cfg = preset("default" if network else "fast", {"query": over})
+                row[name] = _run_eval(ds, truth[name], cfg, Path(tmp), f"{name}_{label}")
+            out[label] = row
+            print(f"  {label:44s} " + "  ".join(f"{n} {r['r_at_100p']:.3f} ({r['tp']}/{r['fp']})"
+                                                for n, r in row.items()), flush=True)
+    return out
+
+
 def bench_speed(rounds: int = 3) -> dict[str, Any]:
     """Milliseconds per 480x360 frame on ONE thread (OpenCV and onnxruntime), the CamVid revisit
     frames of ``train_drives``: the default, with monocular triangulation, with the network (T = 1).
@@ -455,6 +491,7 @@ def bench_speed(rounds: int = 3) -> dict[str, Any]:
         "fast (the default without the network)": ("fast", {}),
         "fast + monocular triangulation": ("fast", {"monocular": {}}),
         "fast, 1 island verified (what 5 cost)": ("fast", {"query": {"islands_verified": 1}}),
+        "fast, no nearest-viewpoint walk (what it costs)": ("fast", {"query": {"viewpoint_steps": 0}}),
         "bow (DBoW2 + fundamental)": ("bow", {}),
     }
     per_round: dict[str, list[dict[str, float]]] = {}
@@ -591,10 +628,15 @@ def main() -> None:
     if "euroc" in sections:
         print("euroc/loop_pairs:", flush=True)
         results["euroc_pairs"] = bench_euroc(runnable)
+    if "viewpoint" in sections:
+        print("nearest-viewpoint walk, settings around the default's, exact cell:", flush=True)
+        results["viewpoint"] = bench_viewpoint(network)
     if "sift" in sections:
         print("SIFT vs ORB (shipped vocabularies), corridor and camvid revisits, exact cell:", flush=True)
         results["sift"] = bench_sift()
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.out.is_file():  # the sections not run this time keep their figures
+        results = {**json.loads(args.out.read_text()), **results}
     args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
     print(f"written {args.out}")
 

@@ -121,6 +121,11 @@ def test_unknown_preset_and_setting() -> None:
         preset("nope")
     with pytest.raises(ConfigError, match="unknown setting"):
         preset("bow", {"query": {"alpah": 0.1}})
+    for bad in ({"viewpoint_steps": -1}, {"viewpoint_inliers": 1.5}, {"viewpoint_margin": -0.1}):
+        with pytest.raises(ConfigError, match="viewpoint"):
+            preset("default", {"query": bad})
+    assert preset("default").query.viewpoint_steps == 3
+    assert preset("paper").query.viewpoint_steps == 0 and preset("bow").query.viewpoint_steps == 0
 
 
 def test_cli_run_and_eval_end_to_end(
@@ -224,7 +229,7 @@ def test_a_true_loop_in_the_second_island_is_found() -> None:
     ds = open_dataset(shared_path("camvid_revisit_dev", "train_drives", "frames"), format="folder")
     decisions = {}
     for k in (1, 5):
-        over = {"query": {"islands_verified": k, "refine": 0}, "similarity": False}
+        over = {"query": {"islands_verified": k, "refine": 0, "viewpoint_steps": 0}, "similarity": False}
         det = LoopDetector(preset("fast", over))  # the islands, without the network
         for i in range(144):
             det.store(ds[i])
@@ -267,3 +272,28 @@ def test_monocular_stream_triangulates_and_resumes(tmp_path: Path) -> None:
     assert [(d.status, d.candidate_frame, d.points_source) for d in got] == [
         (d.status, d.candidate_frame, d.points_source) for d in whole
     ]
+
+
+def test_the_accepted_loop_walks_to_the_nearest_viewpoint() -> None:
+    """Corridor query 64 (frame 175): the entry with the most inliers is reference 68 (32
+    inliers), four frames along the corridor, where the scene looks 0.33 (log) smaller; the walk
+    steps to reference 66 (inside the ground truth's 62-66), whose scale is nearer the query's,
+    and the loop keeps the support of 32 inliers."""
+    from conftest import shared_path
+    from stablecues.datasets import open_dataset
+
+    ds = open_dataset(shared_path("corridor"), format="vprbench")
+    decisions = {}
+    for steps in (0, 3):
+        det = LoopDetector(preset("default", {"query": {"viewpoint_steps": steps}, "similarity": False}))
+        for i in range(175):
+            det.store(ds[i])
+        decisions[steps] = det.process(ds[175])
+    still, walked = decisions[0], decisions[3]
+    assert still.accepted and walked.accepted
+    assert still.candidate_frame == 68 and walked.candidate_frame == 66
+    assert still.verification is not None and walked.verification is not None
+    assert abs(walked.verification.scale_change) < abs(still.verification.scale_change) - 0.05
+    assert walked.verification.n_inliers < still.verification.n_inliers
+    assert int(walked.confidence) == still.verification.n_inliers  # the place's support is kept
+    assert 66 in [c[0] for c in walked.extras()["checked"]]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,6 +14,8 @@ from stablecues.geometry import NoiseModel, PinholeCamera, Points3D, rotation_an
 from stablecues.geometry.pose import _so3_exp
 from stablecues.types import BowVector, Entry, Features, FeatureVector
 from stablecues.verification import Method, Status, VerificationConfig, Verifier, View, preset
+from stablecues.verification.matching import Matches
+from stablecues.verification.result import Verification
 
 CAM = PinholeCamera(450.0, 450.0, 376.0, 240.0, 752, 480)
 NOISE = NoiseModel.stereo(450.0, 0.11)
@@ -312,3 +315,30 @@ def test_matches_fixed_to_the_camera_are_left_out() -> None:
     assert preset("paper").static_px is None and preset("dloop").static_px is None
     with pytest.raises(ConfigError, match="static_px"):
         merge(fundamental, {"static_px": -1.0})
+
+
+def _scaled(scale: float, n: int = 60, outliers: int = 0, seed: int = 21) -> Verification:
+    """A verification whose inlier pixels in the query are those of the candidate zoomed by
+    ``scale`` about a point, rotated 30 degrees and shifted; ``outliers`` of them scattered."""
+    rng = np.random.default_rng(seed)
+    pc = rng.uniform(0, 480, (n, 2))
+    a = np.deg2rad(30.0)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    pq = (pc - 240.0) @ rot.T * scale + 250.0 + rng.normal(0, 0.5, (n, 2))
+    pq[:outliers] = rng.uniform(0, 480, (outliers, 2))
+    idx = np.arange(n, dtype=np.int32)
+    m = Matches(idx, idx, np.zeros(n, np.int32), np.zeros(n, np.float32))
+    return Verification(True, Method.FUNDAMENTAL, Status.ACCEPTED, "", matches=m, inliers=np.ones(n, bool),
+                        pixels_query=pq.astype(np.float32), pixels_candidate=pc.astype(np.float32))
+
+
+def test_scale_change_of_the_inliers() -> None:
+    """The image scale between the views: log 1.3 for a candidate zoomed by 1.3 (and rotated),
+    its opposite the other way, robust to a fifth of scattered matches, NaN with too few."""
+    assert _scaled(1.3).scale_change == pytest.approx(np.log(1.3), abs=0.01)
+    assert _scaled(1 / 1.3).scale_change == pytest.approx(-np.log(1.3), abs=0.01)
+    assert _scaled(1.0).scale_change == pytest.approx(0.0, abs=0.01)
+    assert _scaled(1.3, outliers=12).scale_change == pytest.approx(np.log(1.3), abs=0.05)
+    assert np.isnan(_scaled(1.3, n=2).scale_change)
+    res = _scaled(1.3)
+    assert np.isnan(dataclasses.replace(res, pixels_query=None).scale_change)

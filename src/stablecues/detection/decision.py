@@ -147,6 +147,9 @@ class LoopDecision:
                 inliers=v.n_inliers,
                 triangles_agree=v.n_triangles_agree,
             )
+            scale = v.scale_change
+            if math.isfinite(scale):
+                out["scale_change"] = round(scale, 4)
             pose = self.relative_pose
             if pose is not None:
                 out["relative_pose"] = pose.tolist()

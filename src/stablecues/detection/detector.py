@@ -217,6 +217,8 @@ class _Query:
     results: list[tuple[int, float]] = field(default_factory=list)
     islands: list[Island] = field(default_factory=list)
     raw_of: dict[int, float] = field(default_factory=dict)
+    limit: int = 0
+    support: int = 0
 
 
 class LoopDetector:
@@ -391,7 +393,7 @@ class LoopDetector:
         cand = found.candidate
         confidence = found.score
         if verification is not None and self.config.confidence == "inliers":
-            confidence = float(verification.n_inliers) + min(confidence, 0.999)
+            confidence = float(max(verification.n_inliers, found.support)) + min(confidence, 0.999)
         frames = self._entry_frames
         return LoopDecision(
             frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
@@ -438,6 +440,10 @@ class LoopDetector:
         for e, r in self._refine(prep, verifier, best.island, checked, result.n_inliers):
             if r.accepted and r.n_inliers > result.n_inliers:
                 entry, result = e, r
+        found.support = result.n_inliers  # the place's geometric support, kept when the walk moves on
+        if self.config.query.viewpoint_steps:
+            entry, result = self._nearest_viewpoint(prep, verifier, entry, result, checked, best.island,
+                                                    found)
         if result.pose is None and verifier.camera is None:
             result = self._align(prep, verifier, entry, result)
         if entry != found.candidate:
@@ -471,6 +477,48 @@ class LoopDetector:
                 if result.accepted:
                     inliers = max(inliers, result.n_inliers)
         return out
+
+    def _nearest_viewpoint(
+        self, prep: PreparedFrame, verifier: Verifier, entry: int, result: Verification,
+        checked: list[Checked], island: Island, found: _Query,
+    ) -> tuple[int, Verification]:
+        """Step along the map from the accepted entry towards the viewpoint nearest the query's:
+        while the image scale between the query and the entry (:attr:`Verification.scale_change`)
+        is off by more than ``viewpoint_scale``, the entry's neighbours (id - 1, id + 1) are
+        verified, and the accepted one whose scale change is smaller by ``viewpoint_margin`` is
+        taken; at most ``viewpoint_steps`` steps, never into the excluded recent entries."""
+        q = self.config.query
+        hi = found.limit
+        # where each frame already checked sits in ``checked``: a walk verifies in full, and its
+        # result replaces one cut short earlier (``must_beat``)
+        where = {c.frame: k for k, c in enumerate(checked)}
+        seen: dict[int, Verification] = {entry: result}
+        z = abs(result.scale_change)
+        need = q.viewpoint_inliers * result.n_inliers
+        for _ in range(q.viewpoint_steps):
+            if not z > q.viewpoint_scale:  # also NaN: nothing to go by
+                break
+            step = None
+            for e in (entry - 1, entry + 1):
+                if not 0 <= e < hi:
+                    continue
+                r = seen.get(e)
+                if r is None:
+                    r = seen[e] = verifier.verify(prep.view, self._candidate(verifier, e))
+                    frame = self._entry_frames[e]
+                    if frame in where:
+                        checked[where[frame]] = Checked(checked[where[frame]].island, frame, r)
+                    else:
+                        where[frame] = len(checked)
+                        checked.append(Checked(island, frame, r))
+                ze = abs(r.scale_change)
+                if (r.accepted and r.n_inliers >= need and ze < z - q.viewpoint_margin
+                        and (step is None or ze < step[2])):
+                    step = (e, r, ze)
+            if step is None:
+                break
+            entry, result, z = step
+        return entry, result
 
     def _align(
         self, prep: PreparedFrame, verifier: Verifier, entry: int, result: Verification
@@ -525,6 +573,7 @@ class LoopDetector:
         q = self.config.query
         out = _Query()
         hi = self._exclusion_limit(float(frame.timestamp))
+        out.limit = hi
         if self.config.similarity:
             self.last_similarity = self.db.scores(bow).astype(np.float32)
         if hi <= 0:

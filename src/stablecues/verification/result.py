@@ -41,6 +41,12 @@ def _list(a: np.ndarray | None) -> list[object] | None:
     return None if a is None else np.asarray(a).tolist()
 
 
+#: inliers used for :attr:`Verification.scale_change` (the first, best-ranked ones)
+SCALE_PAIRS_MAX = 200
+#: pairs of points closer than this (pixels) in either image are left out of the scale
+SCALE_MIN_PX = 3.0
+
+
 @dataclass(frozen=True, eq=False)
 class Verification:
     """Outcome of verifying one (query, candidate) pair.
@@ -94,6 +100,28 @@ class Verification:
     @property
     def n_inliers(self) -> int:
         return int(np.count_nonzero(self.inliers))
+
+    @property
+    def scale_change(self) -> float:
+        """How much larger the scene looks in the query than in the candidate, as a log ratio:
+        the median over pairs of inliers of log(distance in the query image / distance in the
+        candidate image). 0 for the same viewpoint; negative when the candidate was taken
+        closer to the scene (a camera that moved on along its way); NaN with fewer than 3
+        inliers or without the match pixels. Rotations in the image plane leave it unchanged."""
+        if self.pixels_query is None or self.pixels_candidate is None:
+            return float("nan")
+        idx = np.flatnonzero(self.inliers)[:SCALE_PAIRS_MAX]
+        if idx.size < 3:
+            return float("nan")
+        pq = self.pixels_query[idx].astype(np.float64)
+        pc = self.pixels_candidate[idx].astype(np.float64)
+        i, j = np.triu_indices(idx.size, 1)
+        dq = np.hypot(*(pq[i] - pq[j]).T)
+        dc = np.hypot(*(pc[i] - pc[j]).T)
+        ok = (dq > SCALE_MIN_PX) & (dc > SCALE_MIN_PX)
+        if not ok.any():
+            return float("nan")
+        return float(np.median(np.log(dq[ok] / dc[ok])))
 
     @property
     def pose(self) -> np.ndarray | None:
