@@ -390,7 +390,30 @@ def _run_eval(ds: Any, gt: Any, cfg: Any, work: Path, name: str, score: str = "s
         "r_at_100p": round(ev.recall_at_100p, 4), "tp": ev.tp, "fp": ev.fp, "positives": ev.positives,
         "tp_at_100p": ev.tp_at_100p, "ms_per_frame": round(summary.ms_per_frame, 2),
         "funnel": funnel.counts, "verifiers": dict(verifiers.most_common()),
+        "scale_change": scale_of_loops(run, gt),
     }
+
+
+def scale_of_loops(run: Any, gt: Any) -> dict[str, Any]:
+    """|scale change| (``extra.jsonl``'s ``scale_change``) of the accepted loops of the scored
+    queries, true and false ones apart: the median, and each false loop's (most confident
+    first) with how many frames its candidate is off the nearest true one."""
+    scale = {int(e["frame"]): abs(float(e["scale_change"])) for e in run.extra() if "scale_change" in e}
+    tp, fp = [], []
+    order = np.argsort(-np.asarray(run.scores, float), kind="stable")
+    for i in order.tolist():
+        f, c = int(run.frames[i]), int(run.candidates[i])
+        scored = gt.query_mask is None or bool(gt.query_mask[f])
+        if not run.accepted[i] or c < 0 or f not in scale or not scored:
+            continue
+        if gt.matrix[f, c]:
+            tp.append(scale[f])
+        else:
+            true = np.flatnonzero(gt.matrix[f])
+            off = int(np.min(np.abs(true - c))) if true.size else None
+            fp.append({"frame": f, "candidate": c, "frames_off": off, "abs_scale": round(scale[f], 3)})
+    return {"tp_median_abs": round(float(np.median(tp)), 3) if tp else None, "tp": len(tp),
+            "fp": fp}
 
 
 def eval_configs(ds: Any, gt: Any, configs: dict[str, Any], work: Path, tag: str, network: bool
