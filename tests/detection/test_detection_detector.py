@@ -297,3 +297,22 @@ def test_the_accepted_loop_walks_to_the_nearest_viewpoint() -> None:
     assert walked.verification.n_inliers < still.verification.n_inliers
     assert int(walked.confidence) == still.verification.n_inliers  # the place's support is kept
     assert 66 in [c[0] for c in walked.extras()["checked"]]
+
+
+def test_removed_entries_are_never_verified(frames: list[Frame]) -> None:
+    """Entries removed from the map (``Database.remove``) are neither proposed nor verified as
+    an island's neighbours (``query.refine``) or on the walk to the nearest viewpoint: the
+    revisit goes on without an error, and no removed entry is named."""
+    over = {"query": {"exclude_recent": 10, "refine": 3, "viewpoint_steps": 3, "viewpoint_scale": 0.0,
+                      "viewpoint_margin": 0.0, "viewpoint_inliers": 0.0},
+            "features": {"n_features": 400}, "similarity": False}
+    det = LoopDetector(preset("fast", over))
+    for f in frames[:REVISIT_FROM]:
+        det.store(f)
+    gone = {5, 7, 9, 11}
+    assert det.db.remove(sorted(gone)) == len(gone)
+    decisions = [det.process(f) for f in frames[REVISIT_FROM:]]
+    assert any(d.accepted for d in decisions)
+    for d in decisions:
+        assert d.candidate_frame not in gone
+        assert not gone & {c.frame for c in d.checked}

@@ -453,6 +453,11 @@ class LoopDetector:
             found.raw_score = found.raw_of.get(entry, 0.0)
         return Status.LOOP_DETECTED, result, tuple(checked)
 
+    def _present(self, entry: int) -> bool:
+        """Whether a map entry is still there (not removed by :meth:`Database.remove`)."""
+        alive = self.db.index.alive()
+        return alive is None or bool(alive[entry])
+
     def _candidate(self, verifier: Verifier, entry: int) -> View:
         """The verifier's view of a map entry; a malformed stored array names the map."""
         try:
@@ -470,7 +475,7 @@ class LoopDetector:
         r = self.config.query.refine
         out = []
         for e in range(max(island.first, island.best - r), min(island.last, island.best + r) + 1):
-            if e != island.best:
+            if e != island.best and self._present(e):
                 result = verifier.verify(prep.view, self._candidate(verifier, e), must_beat=inliers + 1)
                 checked.append(Checked(island, self._entry_frames[e], result))
                 out.append((e, result))
@@ -500,7 +505,7 @@ class LoopDetector:
                 break
             step = None
             for e in (entry - 1, entry + 1):
-                if not 0 <= e < hi:
+                if not (0 <= e < hi and self._present(e)):
                     continue
                 r = seen.get(e)
                 if r is None:
