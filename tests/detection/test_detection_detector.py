@@ -316,3 +316,20 @@ def test_removed_entries_are_never_verified(frames: list[Frame]) -> None:
     for d in decisions:
         assert d.candidate_frame not in gone
         assert not gone & {c.frame for c in d.checked}
+
+
+def test_a_map_whose_newest_entries_were_removed_reopens(frames: list[Frame], tmp_path: Path) -> None:
+    """A map file whose newest entries were removed (``remove(after=...)``) reopens in a
+    detector, which continues from the newest entry still there, with monocular neighbours
+    too; it once failed on the removed entries' empty meta."""
+    path = tmp_path / "map.sqlite"
+    over = {"features": {"n_features": 300}, "similarity": False, "monocular": {}}
+    with LoopDetector(preset("fast", over), database=path) as det:
+        for f in frames[:15]:
+            det.store(f)
+        assert det.db.remove(after=12.0) == 3
+    with LoopDetector(preset("fast", over), database=path) as det:
+        assert len(det) == 15
+        assert det._prev_bow is not None and det._prev_bow == det.db.entry(11).bow
+        d = det.process(frames[15])
+        assert d.entry_id == 15 and d.candidate_frame not in (12, 13, 14)

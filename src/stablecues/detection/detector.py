@@ -269,25 +269,29 @@ class LoopDetector:
     def _restore_state(self) -> None:
         n = len(self.db)
         self._timestamps: list[float] = self.db.column("timestamp") if n else []
-        metas = self.db.column("meta") if n else []
+        # a removed entry keeps its id but not its meta (null): it is never proposed again
+        metas = [m if isinstance(m, dict) else {} for m in (self.db.column("meta") if n else [])]
+        present = self.db.ids() if n else np.zeros(0, np.int64)
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
-        self._prev_bow: BowVector | None = self.db.entry(n - 1).bow if n else None
+        latest = int(present[-1]) if present.size else -1  # the newest entry still in the map
+        self._prev_bow: BowVector | None = self.db.entry(latest).bow if latest >= 0 else None
         # scores of the latest entries with their predecessors, and the first entry of the run
         keep = self.config.query.run_history
-        self._adjacent: list[float] = [float(m["adjacent"]) for m in metas[-keep:]
-                                       if isinstance(m.get("adjacent"), int | float)]
-        self._run_start = int(metas[-1].get("run", 0)) if metas else 0
+        recent = present[max(present.size - keep, 0):].tolist()
+        self._adjacent: list[float] = [float(metas[i]["adjacent"]) for i in recent
+                                       if isinstance(metas[i].get("adjacent"), int | float)]
+        self._run_start = int(metas[latest].get("run", 0)) if latest >= 0 else 0
         self._continuity: tuple[float, int] = (math.nan, self._run_start)
         self._window_n = 0
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
         self.preparer.restore_certainties([float(m["certainty"]) for m in metas if "certainty" in m])
         if self.config.monocular is not None:  # the latest entries are the next frame's neighbours
-            for k in range(max(0, n - self.config.monocular.neighbours), n):
+            for k in present[max(present.size - self.config.monocular.neighbours, 0):].tolist():
                 e = self.db.entry(k)
                 self.preparer.remember(e.features, e.fvec)
-        if metas:
-            last = metas[-1]
+        if latest >= 0:
+            last = metas[latest]
             isl = last.get("window_island")
             if isl is not None:
                 self._window_island = (int(isl[0]), int(isl[1]))
