@@ -447,7 +447,7 @@ class LoopDetector:
         found.support = result.n_inliers  # the place's geometric support, kept when the walk moves on
         if self.config.query.viewpoint_steps:
             entry, result = self._nearest_viewpoint(prep, verifier, entry, result, checked, best.island,
-                                                    found)
+                                                    found.limit)
         if result.pose is None and verifier.camera is None:
             result = self._align(prep, verifier, entry, result)
         if entry != found.candidate:
@@ -489,15 +489,15 @@ class LoopDetector:
 
     def _nearest_viewpoint(
         self, prep: PreparedFrame, verifier: Verifier, entry: int, result: Verification,
-        checked: list[Checked], island: Island, found: _Query,
+        checked: list[Checked], island: Island, hi: int,
     ) -> tuple[int, Verification]:
         """Step along the map from the accepted entry towards the viewpoint nearest the query's:
         while the image scale between the query and the entry (:attr:`Verification.scale_change`)
         is off by more than ``viewpoint_scale``, the entry's neighbours (id - 1, id + 1) are
         verified, and the accepted one whose scale change is smaller by ``viewpoint_margin`` is
-        taken; at most ``viewpoint_steps`` steps, never into the excluded recent entries."""
+        taken; at most ``viewpoint_steps`` steps, never to ids from ``hi`` on (the excluded
+        recent entries)."""
         q = self.config.query
-        hi = found.limit
         # where each frame already checked sits in ``checked``: a walk verifies in full, and its
         # result replaces one cut short earlier (``must_beat``)
         where = {c.frame: k for k, c in enumerate(checked)}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from functools import cached_property
 
 import numpy as np
 
@@ -101,7 +102,7 @@ class Verification:
     def n_inliers(self) -> int:
         return int(np.count_nonzero(self.inliers))
 
-    @property
+    @cached_property  # O(inliers^2): the walk and the run's extras both read it
     def scale_change(self) -> float:
         """How much larger the scene looks in the query than in the candidate, as a log ratio:
         the median over pairs of inliers of log(distance in the query image / distance in the
