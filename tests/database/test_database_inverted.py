@@ -101,7 +101,7 @@ def test_maintenance_runs_in_bounded_steps(monkeypatch: pytest.MonkeyPatch) -> N
         before = self.next
         done = real_step(self)
         w0, w1 = self.bounds[before], self.bounds[min(before + 1, len(self.bounds) - 1)]
-        steps.append(sum(b - a for a, b in (s.word_range(w0, w1) for s in self.inputs)))
+        steps.append(sum(post.shape[0] for _, _, post in self._parts(w0, w1)))
         return done
 
     monkeypatch.setattr(MergeJob, "step", counting_step)

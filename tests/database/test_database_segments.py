@@ -16,6 +16,7 @@ import pytest
 import stablecues.database.segments as segments
 from stablecues.database.segments import (
     HEADER_SIZE,
+    ChunkReader,
     FileSink,
     MergeJob,
     Segment,
@@ -167,6 +168,107 @@ def test_merge_of_many_inputs_keeps_entry_order(tmp_path: Path, monkeypatch: pyt
     assert sorted(zip(words.tolist(), ent.tolist(), strict=True)) == sorted(
         (int(w), int(e)) for p in parts for w, e in zip(p.words.tolist(), split(p.postings)[0].tolist(),  # type: ignore[union-attr]
                                                         strict=True))
+
+
+def _merge(inputs: list[Segment], path: Path, reader: ChunkReader | None, engine: str = "auto",
+           alive: np.ndarray | None = None) -> tuple[Segment, int]:
+    """Merge into a file (steps until done; with a reader, waiting for what it reads)."""
+    job = MergeJob(inputs, lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, c, N_WORDS, fsync=False),
+                   N_WORDS, chunk=150, engine=engine, alive=alive, reader=reader)
+    idle = 0
+    while not job.step():
+        if job.waiting:
+            idle += 1
+            threading.Event().wait(0.001)
+            assert idle < 20_000
+    assert job.result is not None
+    return job.result, idle
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_reader_gives_the_same_merge(engine: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inputs read ahead by a ChunkReader (files in CSR and word form, one input in memory,
+    removed entries dropped) merge into the same file as inputs read by each step."""
+    if engine == "compiled":
+        pytest.importorskip("numba")
+    monkeypatch.setattr(segments, "CSR_MIN", 400)
+    alive = np.ones(100, bool)
+    alive[[3, 41, 77]] = False
+    for drop in (None, alive):
+        # a large input in CSR form, two in word form, one in memory
+        parts = [random_segment(40, seed=1), *(random_segment(20, seed=s, lo=20 * s) for s in (2, 3, 4))]
+        for k in range(3):
+            parts[k] = write(parts[k], tmp_path / f"seg-0000000{k + 1}.sci", k == 0)
+        assert parts[0].indptr is not None and parts[1].words is not None and parts[3].path is None
+        plain, _ = _merge(parts, tmp_path / "seg-00000010.sci", None, engine, drop)
+        reader = ChunkReader(ahead=2)
+        try:
+            ahead, _ = _merge(parts, tmp_path / "seg-00000011.sci", reader, engine, drop)
+        finally:
+            reader.close()
+        assert (tmp_path / "seg-00000010.sci").read_bytes() == (tmp_path / "seg-00000011.sci").read_bytes()
+        assert np.array_equal(plain.postings, ahead.postings)
+        assert np.array_equal(plain.sessions, ahead.sessions)
+        for f in tmp_path.glob("seg-0000001*.sci"):
+            f.unlink()
+
+
+def test_a_step_whose_chunk_is_not_read_yet_does_nothing(tmp_path: Path) -> None:
+    """With a reader, a step never reads a file itself: while the reader's thread is held
+    back, steps return at once having merged nothing (the job says it is waiting)."""
+    seg = write(random_segment(80, seed=6), tmp_path / "seg-00000001.sci", True)
+    gate = threading.Event()
+    real = MergeJob.read_task
+    read_by: set[str] = set()
+
+    def held(self: MergeJob, task: int) -> object:
+        gate.wait(30)
+        read_by.add(threading.current_thread().name)
+        return real(self, task)
+
+    reader = ChunkReader(ahead=3)
+    try:
+        MergeJob.read_task = held  # type: ignore[method-assign]
+        job = MergeJob([seg], lambda lo, hi, c, t: FileSink(tmp_path / "seg-00000002.sci", UUID, lo, hi, c,
+                                                            N_WORDS, fsync=False), N_WORDS, chunk=150,
+                       reader=reader)
+        for _ in range(5):
+            assert not job.step()
+            assert job.waiting and job.bounds is None and job.next == 0
+        gate.set()
+        idle = 0
+        while not job.step():
+            idle += 1
+            threading.Event().wait(0.001)
+            assert idle < 20_000
+    finally:
+        MergeJob.read_task = real  # type: ignore[method-assign]
+        gate.set()
+        reader.close()
+    assert job.result is not None and np.array_equal(job.result.postings, seg.postings)
+    assert read_by == {"stablecues-reader"}
+
+
+def test_a_read_ahead_failure_fails_the_step_that_needs_it(tmp_path: Path) -> None:
+    """An input file cut short after it was mapped: the reader's error is raised by the step
+    that needs the chunk (and the job can be aborted cleanly)."""
+    seg = write(random_segment(80, seed=7), tmp_path / "seg-00000001.sci", True)
+    assert seg.path is not None
+    with open(seg.path, "r+b") as f:
+        f.truncate(HEADER_SIZE + 8)
+    reader = ChunkReader()
+    job = MergeJob([seg], lambda lo, hi, c, t: FileSink(tmp_path / "seg-00000002.sci", UUID, lo, hi, c,
+                                                        N_WORDS, fsync=False),
+                   N_WORDS, chunk=150, reader=reader)
+    try:
+        with pytest.raises(DatabaseError, match="seg-00000001.sci: index file shorter than its header says"):
+            for _ in range(20_000):
+                job.step()
+                threading.Event().wait(0.001)
+    finally:
+        job.abort()
+        reader.close()
+    assert not (tmp_path / "seg-00000002.sci").exists()
 
 
 def test_header_checksum_covers_every_field() -> None:

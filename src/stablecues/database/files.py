@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DatabaseError
-from .segments import FileSink, Segment, SegmentWriter, map_segment
+from .segments import ChunkReader, FileSink, Segment, SegmentWriter, map_segment
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +198,7 @@ class IndexFiles:
         self.next_gen = next_gen
         self._after_commit = after_commit
         self.writer = SegmentWriter()  # the files' writes, off the thread that runs the steps
+        self.reader = ChunkReader()  # and the merges' reads, ahead of the steps
         self._discarding: list[threading.Thread] = []
 
     def sink(self, lo: int, hi: int, csr: bool, total: int) -> FileSink:
@@ -206,7 +207,8 @@ class IndexFiles:
         return FileSink(path, self.uuid, lo, hi, csr, self.n_words, self.fsync, total, self.writer)
 
     def close(self) -> None:
-        """Stop the files' writer thread (after the index's jobs are stopped)."""
+        """Stop the files' reader and writer threads (after the index's jobs are stopped)."""
+        self.reader.close()
         self.writer.close()
 
     def commit(self, segments: Sequence[Segment]) -> None:

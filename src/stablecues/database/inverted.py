@@ -395,7 +395,8 @@ class InvertedIndex:
 
     def _start(self, inputs: list[Segment], alive: np.ndarray | None = None) -> _Job:
         factory = self.store.sink if self.store is not None else self._memory_sink
-        job = _Job(inputs, merge=MergeJob(inputs, factory, self.n_words, self.chunk, alive))
+        job = _Job(inputs, merge=MergeJob(inputs, factory, self.n_words, self.chunk, alive,
+                                          reader=getattr(self.store, "reader", None)))
         self._busy.update(id(s) for s in inputs)
         self._jobs.append(job)
         return job

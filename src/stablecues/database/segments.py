@@ -149,13 +149,6 @@ class Segment:
             got = p64[np.repeat(lo - starts, counts) + np.arange(total)]
         return got, np.repeat(values[nz], counts)
 
-    def word_range(self, w0: int, w1: int) -> tuple[int, int]:
-        """Offsets of the postings of words ``w0 .. w1 - 1``."""
-        if self.indptr is not None:
-            return int(self.indptr[w0]), int(self.indptr[w1])
-        assert self.words is not None
-        return (int(np.searchsorted(self.words, w0, "left")), int(np.searchsorted(self.words, w1, "left")))
-
     def word_at(self, positions: np.ndarray) -> np.ndarray:
         """Word of the postings at the given offsets."""
         if self.indptr is not None:
@@ -163,30 +156,9 @@ class Segment:
         assert self.words is not None
         return self.words[positions].astype(np.int64)
 
-    def read(self, a: int, b: int, w0: int, w1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Postings at offsets ``a .. b - 1`` (those of words ``w0 .. w1 - 1``), and the
-        (w1 - w0,) int64 count of each word's run among them.
 
-        A persisted segment is read with ``pread``, not through its mapping, so merging does
-        not make the index resident in memory; an in-memory segment gives a view, which the
-        merge only reads (nothing is copied that the merge copies anyway).
-        """
-        if self.path is not None and b > a:
-            post = _pread(self.path, HEADER_SIZE + 8 * a, b - a)
-        else:
-            post = self.postings[a:b]
-        return self.counts(a, b, w0, w1), post
-
-    def counts(self, a: int, b: int, w0: int, w1: int) -> np.ndarray:
-        """(w1 - w0,) int64 postings of each word ``w0 .. w1 - 1`` (at offsets ``a .. b - 1``)."""
-        if self.indptr is not None:
-            return np.diff(self.indptr[w0 : w1 + 1]).astype(np.int64, copy=False)
-        assert self.words is not None
-        return np.bincount(self.words[a:b] - w0, minlength=w1 - w0).astype(np.int64, copy=False)
-
-
-def _pread(path: Path, offset: int, count: int) -> np.ndarray:
-    out = np.empty(count, "<i8")
+def _pread(path: Path, offset: int, count: int, dtype: str = "<i8") -> np.ndarray:
+    out = np.empty(count, dtype)
     view = out.data.cast("B")
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -402,6 +374,70 @@ class SegmentWriter:
         """Do what is queued, then stop the thread."""
         with self._cond:
             self._stop = True
+            self._cond.notify_all()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=60)
+
+
+class ChunkReader:
+    """Reads what merge steps are about to merge, in a thread of its own, a few chunks ahead.
+
+    At 10^6 entries the inputs of a large merge are old files whose pages the kernel has
+    let go: a maintenance step that read them itself waited 10-30 ms for the disk (and its
+    add with it), in instrumented 10^6 builds. With a reader, a step merges only what is
+    already in memory; when its chunk has not arrived yet it does nothing (the add goes on,
+    the step runs at a later add). Everything is read with ``pread``, which lets the
+    interpreter go while it waits, never through a segment's mapping (a page fault there
+    would hold the interpreter lock, and so the adding thread, for as long as the disk takes).
+
+    Args:
+        ahead: chunks of a merge read before the step that needs them.
+    """
+
+    def __init__(self, ahead: int = 4) -> None:
+        self.ahead = ahead
+        self._cond = threading.Condition()
+        self._queue: deque[tuple[MergeJob, int]] = deque()
+        self._thread: threading.Thread | None = None
+        self._stop = False
+
+    def request(self, job: MergeJob, task: int) -> None:
+        with self._cond:
+            if not self._stop:
+                self._queue.append((job, task))
+                if self._thread is None or not self._thread.is_alive():
+                    self._thread = threading.Thread(target=self._run, name="stablecues-reader", daemon=True)
+                    self._thread.start()
+                self._cond.notify_all()
+                return
+        self._do(job, task)  # closed (the map is closing): read in the caller's thread
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                job, task = self._queue.popleft()
+            self._do(job, task)
+
+    @staticmethod
+    def _do(job: MergeJob, task: int) -> None:
+        if job.aborted:
+            return
+        try:
+            result: Any = job.read_task(task)
+        except Exception as exc:  # noqa: BLE001 - handed to the step that needs it
+            result = exc
+        job.deliver(task, result)
+
+    def close(self) -> None:
+        """Drop what is queued and stop the thread."""
+        with self._cond:
+            self._stop = True
+            self._queue.clear()
             self._cond.notify_all()
             thread = self._thread
         if thread is not None and thread is not threading.current_thread():
@@ -632,6 +668,10 @@ def verify_segment(seg: Segment, n_entries: int, block: int = 1 << 24) -> str | 
 
 
 # ---------------------------------------------------------------------------- merging
+_PREPARE = -1  # a reader's first task of a merge: its chunk bounds and small inputs' word tables
+_NOT_READY = object()
+
+
 class MergeJob:
     """Merge adjacent segments (oldest first) into one, a bounded chunk of words per step.
 
@@ -645,12 +685,15 @@ class MergeJob:
         session_shift: added to every session id.
         engine: ``"auto"``, ``"compiled"`` or ``"numpy"``: how postings are merged (the same
             segment either way).
+        reader: reads the persisted inputs a few chunks ahead of the steps (a step whose
+            chunk has not arrived does nothing, :attr:`waiting`), or None: each step reads
+            what it merges. The same segment either way.
     """
 
     def __init__(
         self, inputs: Sequence[Segment], sink_factory: Callable[[int, int, bool, int], Sink],
         n_words: int, chunk: int = 1 << 18, alive: np.ndarray | None = None,
-        shift: int = 0, session_shift: int = 0, engine: str = "auto",
+        shift: int = 0, session_shift: int = 0, engine: str = "auto", reader: ChunkReader | None = None,
     ) -> None:
         for a, b in zip(inputs, inputs[1:], strict=False):
             if a.hi != b.lo:
@@ -665,48 +708,156 @@ class MergeJob:
         self.csr = self.total >= csr_threshold(n_words)
         self.sink_factory = sink_factory
         self.sink: Sink | None = None
-        self.bounds = self._bounds(chunk)
+        self.chunk = chunk
+        # only files are read ahead: inputs in memory are merged from where they are
+        self.reader = reader if any(s.path is not None for s in self.inputs) else None
+        self.aborted = False
+        self._lock = threading.Lock()
+        self._ready: dict[int, Any] = {}  # the reader's results, by task
+        self._asked = _PREPARE - 1  # the last task handed to the reader
+        self._tables: list[np.ndarray | None] | None = None  # word-form inputs' word tables
+        self.bounds: list[int] | None = None if self.reader is not None else self._bounds(chunk)
         self.next = 0
         self._sessions: np.ndarray | None = None
         self.result: Segment | None = None
+        self._ask()  # reading starts now, not at the job's first step
 
-    def _bounds(self, chunk: int) -> list[int]:
+    def _bounds(self, chunk: int, word_at: Callable[[np.ndarray], np.ndarray] | None = None) -> list[int]:
         n_chunks = -(-self.total // max(chunk, 1))
         if n_chunks <= 1:
             return [0, self.n_words]
         big = max(self.inputs, key=lambda s: s.size)
         pos = (np.arange(1, n_chunks) * big.size) // n_chunks
-        inner = np.unique(big.word_at(pos.astype(np.int64)))
+        inner = np.unique((word_at or big.word_at)(pos.astype(np.int64)))
         inner = inner[(inner > 0) & (inner < self.n_words)]
         return [0, *inner.tolist(), self.n_words]
 
     @property
     def waiting(self) -> bool:
-        """Finished but for the file work a writer thread still does (a step now does nothing)."""
+        """A step now does nothing: the chunk it needs is still being read, or the merge is
+        finished but for the file work a writer thread still does."""
+        want = self._want()
+        if want is not None:
+            with self._lock:
+                if want not in self._ready:
+                    return True
         return bool(getattr(self.sink, "waiting", False))
 
     @property
     def remaining(self) -> int:
         """About how many postings are still to merge."""
+        if self.bounds is None:
+            return self.total
         return self.total * (len(self.bounds) - 1 - self.next) // max(len(self.bounds) - 1, 1)
 
+    # ------------------------------------------------------------------ reading ahead
+    def _want(self) -> int | None:
+        """The reader's task the next step needs (None: nothing, or no reader)."""
+        if self.reader is None:
+            return None
+        if self.bounds is None:
+            return _PREPARE
+        if self.next < len(self.bounds) - 1:
+            return self.next
+        return len(self.bounds) - 1 if self._sessions is None else None  # the sessions last
+
+    def _ask(self) -> None:
+        """Hand the reader every task up to ``ahead`` past the one the next step needs."""
+        want = self._want()
+        if want is None or self.reader is None:
+            return
+        last = want if self.bounds is None else min(want + self.reader.ahead, len(self.bounds) - 1)
+        while self._asked < last:
+            self._asked += 1
+            self.reader.request(self, self._asked)
+
+    def _take(self) -> Any:
+        """The result of the task the next step needs, or _NOT_READY; a task that failed
+        raises its error here."""
+        want = self._want()
+        self._ask()
+        with self._lock:
+            if want not in self._ready:
+                return _NOT_READY
+            got = self._ready.pop(want)
+        if isinstance(got, Exception):
+            raise got
+        return got
+
+    def deliver(self, task: int, result: Any) -> None:
+        with self._lock:
+            if not self.aborted:
+                self._ready[task] = result
+
+    def read_task(self, task: int) -> Any:
+        """What task ``task`` needs (in the reader's thread): the chunk bounds and the small
+        inputs' word tables (_PREPARE), a chunk's parts, or the sessions (the last task)."""
+        if task == _PREPARE:
+            tables = [_pread(s.path, HEADER_SIZE + 8 * s.size, s.size, "<i4")
+                      if s.path is not None and s.words is not None else s.words for s in self.inputs]
+            i = max(range(len(self.inputs)), key=lambda k: self.inputs[k].size)
+            big, table = self.inputs[i], tables[i]
+            word_at: Callable[[np.ndarray], np.ndarray] = big.word_at
+            if big.path is not None and big.indptr is not None:
+                indptr = _pread(big.path, HEADER_SIZE + 8 * big.size, self.n_words + 1)
+                word_at = lambda pos: np.searchsorted(indptr, pos, "right") - 1  # noqa: E731
+            elif table is not None:
+                word_at = lambda pos: table[pos].astype(np.int64)  # noqa: E731
+            return self._bounds(self.chunk, word_at), tables
+        assert self.bounds is not None
+        if task < len(self.bounds) - 1:
+            return self._parts(self.bounds[task], self.bounds[task + 1], self._tables)
+        return np.concatenate([
+            _pread(s.path, HEADER_SIZE + 8 * s.size + (8 * (self.n_words + 1) if s.indptr is not None
+                                                       else 4 * s.size), s.hi - s.lo, "<i4")
+            if s.path is not None else np.asarray(s.sessions, np.int32) for s in self.inputs])
+
+    def _parts(
+        self, w0: int, w1: int, tables: Sequence[np.ndarray | None] | None = None,
+    ) -> list[tuple[Segment, np.ndarray, np.ndarray]]:
+        """(segment, table, postings) of every input holding words ``w0 .. w1 - 1``: the
+        table is the word of each posting (word form) or each word's count (CSR). With the
+        inputs' ``tables`` (the reader's), files are read with ``pread`` only."""
+        parts = []
+        for i, seg in enumerate(self.inputs):
+            path = seg.path if tables is not None else None  # read ahead: files by pread only
+            on_disk = path is not None
+            if seg.indptr is not None:
+                ip = (seg.indptr[w0 : w1 + 1] if path is None
+                      else _pread(path, HEADER_SIZE + 8 * (seg.size + w0), w1 - w0 + 1))
+                a, b = int(ip[0]), int(ip[-1])
+                table = np.diff(ip).astype(np.int64, copy=False)
+            else:
+                words = tables[i] if on_disk and tables is not None else seg.words
+                assert words is not None
+                a, b = int(np.searchsorted(words, w0, "left")), int(np.searchsorted(words, w1, "left"))
+                table = words[a:b]
+            if b > a:
+                post = seg.postings[a:b] if seg.path is None else _pread(seg.path, HEADER_SIZE + 8 * a, b - a)
+                parts.append((seg, table, post))
+        return parts
+
+    # ------------------------------------------------------------------ merging
     def step(self) -> bool:
         """Merge the next chunk of words; returns True once the merged segment is ready."""
         if self.sink is None:
             self.sink = self.sink_factory(self.lo + self.shift, self.hi + self.shift, self.csr, self.total)
+        if self.bounds is None:
+            got = self._take()
+            if got is not _NOT_READY:
+                self.bounds, self._tables = got
+                self._ask()  # the first chunks
+            return False
         if self.next < len(self.bounds) - 1:
-            w0, w1 = self.bounds[self.next], self.bounds[self.next + 1]
-            self.next += 1
-            # a memory sink takes the merge in place unless postings are dropped or renumbered
-            reserve = getattr(self.sink, "reserve", None) if self.alive is None and not self.shift else None
-            w0, counts, post = self._chunk(w0, w1, reserve)
-            if reserve is not None:
-                self.sink.placed(w0, counts, post.shape[0])  # type: ignore[attr-defined]
-            else:
-                self.sink.append(w0, counts, post)
+            parts = None if self.reader is None else self._take()
+            if parts is not _NOT_READY:
+                self._merge_next(self.sink, self.bounds, parts)
             return False
         if self._sessions is None:
-            sessions = np.concatenate([np.asarray(s.sessions, np.int32) for s in self.inputs])
+            if self.reader is None:
+                sessions = np.concatenate([np.asarray(s.sessions, np.int32) for s in self.inputs])
+            elif (sessions := self._take()) is _NOT_READY:
+                return False
             if self.session_shift:
                 sessions = (sessions.astype(np.int64) + self.session_shift).astype(np.int32)
             self._sessions = sessions
@@ -717,25 +868,42 @@ class MergeJob:
             self.result = finish_step(self._sessions)
         return self.result is not None
 
+    def _merge_next(self, sink: Sink, bounds: list[int], parts: Any) -> None:
+        w0, w1 = bounds[self.next], bounds[self.next + 1]
+        self.next += 1
+        # a memory sink takes the merge in place unless postings are dropped or renumbered
+        reserve = getattr(sink, "reserve", None) if self.alive is None and not self.shift else None
+        w0, counts, post = self._chunk(w0, w1, reserve, parts)
+        if reserve is not None:
+            sink.placed(w0, counts, post.shape[0])  # type: ignore[attr-defined]
+        else:
+            sink.append(w0, counts, post)
+
     def _chunk(
-        self, w0: int, w1: int, reserve: Callable[[int], np.ndarray] | None = None
+        self, w0: int, w1: int, reserve: Callable[[int], np.ndarray] | None = None,
+        parts: list[tuple[Segment, np.ndarray, np.ndarray]] | None = None,
     ) -> tuple[int, np.ndarray, np.ndarray]:
         """Words ``w0 .. w1 - 1`` of every input merged: (w0, per-word counts, postings); with
-        ``reserve``, the postings are written to ``reserve(n)`` (no removal or shift then)."""
-        parts = []
-        for seg in self.inputs:
-            a, b = seg.word_range(w0, w1)
-            if b > a:
-                parts.append((seg, a, b))
+        ``reserve``, the postings are written to ``reserve(n)`` (no removal or shift then).
+        ``parts``: what :meth:`_parts` gives for these words (read ahead), or None."""
+        if parts is None:
+            parts = self._parts(w0, w1)
         if not parts:
             return w0, np.zeros(w1 - w0, np.int64), empty_postings()
         kernels = compiled_kernels() if resolve(self.engine) == "compiled" else None
         if kernels is not None and all(seg.words is not None for seg, _, _ in parts):
-            counts, post = _count_merge(kernels, parts, w0, w1, reserve)
+            # small inputs merged by counting: one pass to count each word's postings, one to
+            # scatter them, oldest input first; O(P + (w1 - w0)), not the per-input passes
+            # over every word that merge_runs makes, and the same result (tests check it)
+            counts, post = _counting_sort(
+                kernels, [(table, p, seg.lo, seg.hi) for seg, table, p in parts], w0, w1 - w0,
+                lambda i: DatabaseError(
+                    f"{_name(parts[i][0])}: holds words or entry ids out of place (corrupt)"), reserve)
         else:
             counts_l, post_l = [], []
-            for seg, a, b in parts:
-                c, p = seg.read(a, b, w0, w1)
+            for seg, table, p in parts:
+                c = (table if seg.words is None
+                     else np.bincount(table - w0, minlength=w1 - w0).astype(np.int64, copy=False))
                 ent = split(p)[0]
                 if int(ent.min()) < seg.lo or int(ent.max()) >= seg.hi:
                     raise DatabaseError(
@@ -758,29 +926,15 @@ class MergeJob:
         return w0, counts, post
 
     def abort(self) -> None:
+        with self._lock:
+            self.aborted = True
+            self._ready.clear()
         if self.sink is not None and self.result is None:
             self.sink.abort()
 
 
 def _name(seg: Segment) -> str:
     return str(seg.path) if seg.path is not None else "an index segment"
-
-
-def _count_merge(
-    kernels: ModuleType, parts: Sequence[tuple[Segment, int, int]], w0: int, w1: int,
-    reserve: Callable[[int], np.ndarray] | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Merge the postings at offsets ``a .. b - 1`` of segments that keep a word per posting
-    (small ones) by counting: one pass to count each word's postings, one to scatter them,
-    oldest input first. O(P + (w1 - w0)), not the per-input passes over every word that
-    :func:`merge_runs` makes; the same result (tests check it)."""
-    inputs = []
-    for seg, a, b in parts:
-        assert seg.words is not None
-        post = _pread(seg.path, HEADER_SIZE + 8 * a, b - a) if seg.path is not None else seg.postings[a:b]
-        inputs.append((seg.words[a:b], post, seg.lo, seg.hi))
-    return _counting_sort(kernels, inputs, w0, w1 - w0, lambda i: DatabaseError(
-        f"{_name(parts[i][0])}: holds words or entry ids out of place (corrupt)"), reserve)
 
 
 def _counting_sort(
