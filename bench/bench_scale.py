@@ -34,6 +34,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import contextlib
+import gc
 import json
 import shutil
 import subprocess
@@ -228,6 +229,19 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
     kept_path = Path(db_path).with_suffix(".queries.npy")
     kept = list(np.load(kept_path)) if kept_path.exists() else []
     times = []
+    # [entry, wall ms, CPU ms of the adding thread, ms of full garbage collections (any thread)
+    # inside it] of every add over 10 ms
+    slow = []
+    full_gc: list[list[float]] = []  # [start, end] of every collection of the oldest generation
+
+    def on_gc(phase: str, info: dict[str, int]) -> None:
+        if info["generation"] == 2:
+            if phase == "start":
+                full_gc.append([time.perf_counter(), float("nan")])
+            elif full_gc:
+                full_gc[-1][1] = time.perf_counter()
+
+    gc.callbacks.append(on_gc)
     load0 = load()
     deadline = time.perf_counter() + budget_s
     i = start
@@ -235,9 +249,15 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
         d = maker.next()
         bow, fvec = voc.transform(d)
         feats = fake_features(d, rng)  # the direct index is stored; these only when descriptors
+        c = time.thread_time()
         t = time.perf_counter()
         db.add(bow, fvec, feats, timestamp=float(i))
-        times.append(time.perf_counter() - t)
+        dt = time.perf_counter() - t
+        times.append(dt)
+        if dt > 0.010:
+            in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b in full_gc[-3:])
+            cpu = time.thread_time() - c
+            slow.append([i, round(1e3 * dt, 2), round(1e3 * cpu, 2), round(1e3 * in_gc, 2)])
         if i % max(n_total // 200, 1) == 0:
             kept.append(d)
         i += 1
@@ -248,7 +268,9 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
         np.save(kept_path, np.stack(kept))
     print(json.dumps({"start": start, "end": i, "add_s": float(np.sum(times)),
                       "wall_s": round(time.perf_counter() - t0, 3),
-                      "add_ms": stats_ms(times) if times else {}, "open_s": round(open_s, 3),
+                      "add_ms": stats_ms(times) if times else {}, "slow_adds": slow,
+                      "full_gc_ms": [round(1e3 * (b - a), 2) for a, b in full_gc],
+                      "open_s": round(open_s, 3),
                       "close_s": round(close_s, 3), "load": [load0, load()], **memory_gb()}))
 
 
@@ -356,6 +378,13 @@ def run_large(name: str, work: Path, n: int, n_features: int, descriptors: bool,
         # everything a build does per entry: synthetic descriptors, transform, features, add
         "build_entries_per_s": round(n / sum(c.get("wall_s", float("nan")) for c in chunks), 1),
         "add_ms_max": max(c["add_ms"].get("max", 0.0) for c in chunks),
+        # the slowest adds, [entry, wall ms, CPU ms of the adding thread, ms of full garbage
+        # collections inside it]: CPU near the wall time is work done in the add (a collection
+        # in the adding thread included), far below it a wait (the disk, a lock, other threads)
+        "adds_over_10ms": sum(len(c.get("slow_adds", [])) for c in chunks),
+        "adds_over_20ms": sum(1 for c in chunks for x in c.get("slow_adds", []) if x[1] > 20),
+        "slowest_adds": sorted((x for c in chunks for x in c.get("slow_adds", [])), key=lambda x: -x[1])[:10],
+        "full_gc_ms": [x for c in chunks for x in c.get("full_gc_ms", [])],
         "add_ms_mean": round(1e3 * add_s / n, 4),
         # an add returns once its entry is in the entry log; closing waits until SQLite holds
         # every entry (what the SQLite thread had still to write when the adds stopped)
@@ -396,6 +425,9 @@ def summary(results: dict[str, Any]) -> dict[str, Any]:
         out[f"reopen_s_{name}"] = {"value": r["reopen_s"], "load": rl}
         out[f"add_per_s_{name}"] = {"value": r["add_per_s"], "load": bl}
         out[f"add_ms_max_{name}"] = {"value": r["add_ms_max"], "load": bl}
+        if "slowest_adds" in r:
+            out[f"adds_over_10ms_{name}"] = {"value": r["adds_over_10ms"], "over_20ms": r["adds_over_20ms"],
+                                            "slowest_wall_cpu_ms": [x[1:] for x in r["slowest_adds"][:5]]}
         out[f"bytes_per_entry_{name}"] = {"value": r["bytes_per_entry"]}
         out[f"query_ms_{name}"] = {"p50": r["query_ms_p50"], "p90": r["query_ms_p90"], "load": rl}
         peak = max(r["peak_rss_gb_build"], r["peak_rss_gb_reopen"])
