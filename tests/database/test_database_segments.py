@@ -393,6 +393,36 @@ def test_sort_blocks_counting_sort_is_the_numpy_sort(csr: bool, monkeypatch: pyt
             sort_blocks(blocks, 0, 45, sessions, N_WORDS, engine="compiled")
 
 
+@pytest.mark.parametrize("n_words", [300, 2048, 10**6])
+def test_sort_blocks_radix_sort_is_the_numpy_sort(n_words: int) -> None:
+    """Word-form blocks sorted by radix (the compiled kernels once loaded: one pass up to 2^11
+    words, two for 10^6) give the segment NumPy's key sort gives; a word outside the
+    vocabulary is refused before anything is sorted."""
+    pytest.importorskip("numba")
+    from stablecues.vocabulary.engine import compiled_kernels
+
+    assert compiled_kernels() is not None
+    rng = np.random.default_rng(12)
+    blocks = []
+    for b in range(4):  # many postings per word (stability shows), the extreme words present
+        w = rng.integers(0, min(n_words, 700), 2000).astype(np.int32)
+        w[:2] = [0, n_words - 1]
+        blocks.append((w, pack_postings(np.repeat(np.arange(100 * b, 100 * b + 100, dtype=np.int32), 20),
+                                        rng.random(2000))))
+    sessions = np.zeros(400, np.int32)
+    a = sort_blocks(blocks, 0, 400, sessions, n_words, engine="numpy")
+    b = sort_blocks(blocks, 0, 400, sessions, n_words, engine="compiled")
+    assert a.words is not None and b.indptr is None
+    assert np.array_equal(a.words, b.words) and np.array_equal(a.postings, b.postings)
+    ent = split(b.postings)[0]
+    assert np.array_equal(np.lexsort((ent, b.words)), np.arange(ent.size))  # type: ignore[arg-type]
+    for bad in (-1, n_words):
+        w = blocks[2][0].copy()
+        w[5] = bad
+        with pytest.raises(ValueError, match=f"words outside 0..{n_words - 1}"):
+            sort_blocks([*blocks[:2], (w, blocks[2][1])], 0, 300, sessions, n_words, engine="compiled")
+
+
 def test_a_small_block_never_loads_the_compiled_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
     """Sorting fewer postings than a CSR table is worth (what a reopen reads back from the
     entries) is NumPy's job: it does not import numba and load its cache (about a second in a

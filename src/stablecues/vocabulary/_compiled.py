@@ -353,3 +353,43 @@ def scatter_words(out: np.ndarray, dest: np.ndarray, words: np.ndarray, postings
                 out[d] = postings[i]
                 dest[w] = d + 1
 
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _radix_pass(src_w: np.ndarray, src_p: np.ndarray, dst_w: np.ndarray, dst_p: np.ndarray,
+                shift: int, mask: int) -> None:
+    start = np.zeros(mask + 2, np.int64)
+    for i in range(src_w.shape[0]):
+        start[((src_w[i] >> shift) & mask) + 1] += 1
+    for d in range(1, mask + 2):
+        start[d] += start[d - 1]
+    for i in range(src_w.shape[0]):
+        d = (src_w[i] >> shift) & mask
+        j = start[d]
+        start[d] = j + 1
+        dst_w[j] = src_w[i]
+        dst_p[j] = src_p[i]
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def radix_words(words: np.ndarray, postings: np.ndarray, n_bits: int, out_w: np.ndarray,
+                out_p: np.ndarray, tmp_w: np.ndarray, tmp_p: np.ndarray) -> None:
+    """Sort (P,) int32 ``words`` in 0 .. 2**n_bits - 1, and their postings with them, stably
+    into ``out_w`` / ``out_p`` (``tmp_*``: as large, scratch): least significant digit first,
+    digits of at most 11 bits, so a 10^6-word vocabulary takes two passes of 1024 buckets
+    (:func:`stablecues.database.segments.sort_blocks`). A digit is masked, so no word can
+    index outside the buckets."""
+    passes = max((n_bits + 10) // 11, 1)
+    digit = (n_bits + passes - 1) // passes
+    mask = (1 << digit) - 1
+    for k in range(passes):
+        to_out = (passes - 1 - k) % 2 == 0  # the last pass writes out_*
+        if k == 0:
+            if to_out:
+                _radix_pass(words, postings, out_w, out_p, 0, mask)
+            else:
+                _radix_pass(words, postings, tmp_w, tmp_p, 0, mask)
+        elif to_out:
+            _radix_pass(tmp_w, tmp_p, out_w, out_p, k * digit, mask)
+        else:
+            _radix_pass(out_w, out_p, tmp_w, tmp_p, k * digit, mask)

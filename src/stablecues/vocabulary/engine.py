@@ -47,6 +47,12 @@ def compiled_kernels() -> ModuleType | None:
     return _state["kernels"]
 
 
+def loaded_kernels() -> ModuleType | None:
+    """The compiled kernels module if an earlier call of :func:`compiled_kernels` loaded it
+    (never loads it: numba's import costs about a second in a fresh process)."""
+    return _state.get("kernels")
+
+
 def _load_kernels() -> ModuleType | None:
     def load() -> ModuleType:
         from . import _compiled
@@ -85,6 +91,9 @@ def _warm(kernels: ModuleType) -> None:
     for words in (w32, mapped):
         kernels.count_words(np.zeros(1, np.int64), words, np.zeros(1, "<i8"), 0, 0, 1)
         kernels.scatter_words(np.zeros(1, "<i8"), np.zeros(1, np.int64), words, np.zeros(1, "<i8"), 0)
+    for bits in (11, 20):  # one pass and two
+        kernels.radix_words(w32, np.zeros(1, "<i8"), bits, np.zeros(1, np.int32), np.zeros(1, "<i8"),
+                            np.zeros(1, np.int32), np.zeros(1, "<i8"))
 
 
 def resolve(name: str) -> str:
