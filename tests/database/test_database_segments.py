@@ -498,6 +498,44 @@ def test_a_writer_thread_writes_the_same_file(csr: bool, tmp_path: Path) -> None
     assert path.read_bytes() == Path(plain.path).read_bytes()  # type: ignore[arg-type]
 
 
+def test_a_step_never_waits_for_a_writer_far_behind(tmp_path: Path) -> None:
+    """Once more than max_behind bytes wait for the writer's thread (a slow disk), steps do
+    nothing and return at once instead of queueing more; the file is the same in the end."""
+    seg = random_segment(200, seed=8)
+    plain = write(seg, tmp_path / "seg-00000001.sci", True)
+    writer = SegmentWriter(max_behind=1000)
+    gate = threading.Event()
+    real_do = FileSink.do
+
+    def slow_do(self: FileSink, op: str, data: object) -> None:
+        gate.wait(30)
+        real_do(self, op, data)
+
+    path = tmp_path / "seg-00000002.sci"
+    try:
+        FileSink.do = slow_do  # type: ignore[method-assign]
+        job = MergeJob([seg], lambda lo, hi, c, t: FileSink(path, UUID, lo, hi, c, N_WORDS, fsync=False,
+                                                            writer=writer), N_WORDS, chunk=100)
+        job.csr = True
+        steps = 0
+        while not job.waiting:
+            assert not job.step()
+            steps += 1
+            assert steps < 1000
+        at = job.next
+        assert at < len(job.bounds) - 1  # type: ignore[arg-type]
+        for _ in range(20):  # the writer is held (30 s): a step that queued more would wait for it
+            assert not job.step() and job.waiting and job.next == at
+        gate.set()
+        while not job.step():
+            writer.wait(job.sink, 1.0)  # type: ignore[arg-type]
+    finally:
+        FileSink.do = real_do  # type: ignore[method-assign]
+        gate.set()
+        writer.close()
+    assert path.read_bytes() == Path(plain.path).read_bytes()  # type: ignore[arg-type]
+
+
 def test_a_writer_threads_failure_fails_the_job_and_abort_leaves_no_file(tmp_path: Path) -> None:
     seg = random_segment(60, seed=5)
     writer = SegmentWriter()

@@ -357,6 +357,13 @@ class SegmentWriter:
                 self._thread.start()
             self._cond.notify_all()
 
+    @property
+    def full(self) -> bool:
+        """More than ``max_behind`` bytes queued: a maintenance step that would queue more
+        does nothing instead of waiting (the disk sets the pace, not the adding thread)."""
+        thread = self._thread
+        return self._behind > self.max_behind and thread is not None and thread.is_alive()
+
     def wait(self, sink: FileSink, timeout: float) -> None:
         """Wait up to ``timeout`` for the sink's queued work to be done."""
         with self._cond:
@@ -519,8 +526,13 @@ class FileSink:
 
     @property
     def waiting(self) -> bool:
-        """Finishing, with the writer's work on the file not done yet."""
-        return self._closing and self.queued > 0
+        """Finishing, with the writer's work on the file not done yet, or the writer too far
+        behind to queue more."""
+        return (self._closing and self.queued > 0) or self.backlogged
+
+    @property
+    def backlogged(self) -> bool:
+        return self.writer is not None and self.writer.full
 
     def _check(self) -> None:
         if self.error is not None:
@@ -854,6 +866,8 @@ class MergeJob:
         """Merge the next chunk of words; returns True once the merged segment is ready."""
         if self.sink is None:
             self.sink = self.sink_factory(self.lo + self.shift, self.hi + self.shift, self.csr, self.total)
+        if getattr(self.sink, "backlogged", False):
+            return False  # its writer is behind (a slow disk): a later step goes on
         if self.bounds is None:
             got = self._take()
             if got is not _NOT_READY:
