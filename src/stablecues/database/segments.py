@@ -309,6 +309,12 @@ def header_bytes(form: int, uuid: bytes, n_words: int, lo: int, hi: int, n_posti
     return head + bytes(HEADER_SIZE - len(head))
 
 
+def _layout(seg: Segment, n_words: int) -> tuple[int, int]:
+    """File offsets of a persisted segment's word table and of its sessions."""
+    table = HEADER_SIZE + 8 * seg.size
+    return table, table + (8 * (n_words + 1) if seg.indptr is not None else 4 * seg.size)
+
+
 def expected_size(form: int, n_words: int, lo: int, hi: int, n_postings: int) -> int:
     table = 8 * (n_words + 1) if form == FORM_CSR else 4 * n_postings
     return HEADER_SIZE + 8 * n_postings + table + 4 * (hi - lo)
@@ -817,13 +823,13 @@ class MergeJob:
         """What task ``task`` needs (in the reader's thread): the chunk bounds and the small
         inputs' word tables (_PREPARE), a chunk's parts, or the sessions (the last task)."""
         if task == _PREPARE:
-            tables = [_pread(s.path, HEADER_SIZE + 8 * s.size, s.size, "<i4")
+            tables = [_pread(s.path, _layout(s, self.n_words)[0], s.size, "<i4")
                       if s.path is not None and s.words is not None else s.words for s in self.inputs]
             i = max(range(len(self.inputs)), key=lambda k: self.inputs[k].size)
             big, table = self.inputs[i], tables[i]
             word_at: Callable[[np.ndarray], np.ndarray] = big.word_at
             if big.path is not None and big.indptr is not None:
-                indptr = _pread(big.path, HEADER_SIZE + 8 * big.size, self.n_words + 1)
+                indptr = _pread(big.path, _layout(big, self.n_words)[0], self.n_words + 1)
                 word_at = lambda pos: np.searchsorted(indptr, pos, "right") - 1  # noqa: E731
             elif table is not None:
                 word_at = lambda pos: table[pos].astype(np.int64)  # noqa: E731
@@ -831,10 +837,9 @@ class MergeJob:
         assert self.bounds is not None
         if task < len(self.bounds) - 1:
             return self._parts(self.bounds[task], self.bounds[task + 1], self._tables)
-        return np.concatenate([
-            _pread(s.path, HEADER_SIZE + 8 * s.size + (8 * (self.n_words + 1) if s.indptr is not None
-                                                       else 4 * s.size), s.hi - s.lo, "<i4")
-            if s.path is not None else np.asarray(s.sessions, np.int32) for s in self.inputs])
+        return np.concatenate([_pread(s.path, _layout(s, self.n_words)[1], s.hi - s.lo, "<i4")
+                               if s.path is not None else np.asarray(s.sessions, np.int32)
+                               for s in self.inputs])
 
     def _parts(
         self, w0: int, w1: int, tables: Sequence[np.ndarray | None] | None = None,
@@ -845,14 +850,13 @@ class MergeJob:
         parts = []
         for i, seg in enumerate(self.inputs):
             path = seg.path if tables is not None else None  # read ahead: files by pread only
-            on_disk = path is not None
             if seg.indptr is not None:
                 ip = (seg.indptr[w0 : w1 + 1] if path is None
-                      else _pread(path, HEADER_SIZE + 8 * (seg.size + w0), w1 - w0 + 1))
+                      else _pread(path, _layout(seg, self.n_words)[0] + 8 * w0, w1 - w0 + 1))
                 a, b = int(ip[0]), int(ip[-1])
                 table = np.diff(ip).astype(np.int64, copy=False)
             else:
-                words = tables[i] if on_disk and tables is not None else seg.words
+                words = seg.words if path is None or tables is None else tables[i]
                 assert words is not None
                 a, b = int(np.searchsorted(words, w0, "left")), int(np.searchsorted(words, w1, "left"))
                 table = words[a:b]
