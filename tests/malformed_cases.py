@@ -752,6 +752,16 @@ def _(d: Path) -> Setup:
                  check=lambda f: "the database's folder was created" if (f / "nope").exists() else None)
 
 
+@case("runs/db-entry-log-is-a-folder")
+def _(d: Path) -> Setup:
+    """The database's entry log (``map.sqlite-entries``) is a folder: refused before the run
+    folder is made (an earlier version wrote the run's files, then failed)."""
+    images(d / "data", 3)
+    (d / "map.sqlite-entries").mkdir()
+    return Setup([*run_argv(d / "data", d), "--db", str(d / "map.sqlite")], "map.sqlite-entries",
+                 check=lambda f: "the run folder was written" if (f / "out").exists() else None)
+
+
 @case("runs/similarity-too-large")
 def _(d: Path) -> Setup:
     images(d / "data", 1)

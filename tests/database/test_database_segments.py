@@ -94,6 +94,23 @@ def test_files_do_not_depend_on_the_announced_size_or_the_step_budget(csr: bool,
     assert all(f == files[0] for f in files[1:])
 
 
+def test_a_csr_table_is_filled_as_postings_arrive(tmp_path: Path) -> None:
+    """A CSR file's offsets are written chunk by chunk (words without postings between and
+    after the appended ones included), the same table as counting at the end; postings of an
+    earlier word after a later one's are refused."""
+    sink = FileSink(tmp_path / "seg-00000001.sci", UUID, 0, 3, True, N_WORDS, fsync=False)
+    counts = np.zeros(N_WORDS, np.int64)
+    for w0, c in ((5, [2, 0, 1]), (8, [0]), (20, [1, 4]), (299, [2])):
+        c = np.array(c, np.int64)
+        counts[w0 : w0 + c.size] = c
+        sink.append(w0, c, pack_postings(np.zeros(int(c.sum()), np.int32), np.ones(int(c.sum()))))
+    with pytest.raises(ValueError, match="postings of word 30 appended after word 299's"):
+        sink.append(30, np.ones(1, np.int64), pack_postings(np.zeros(1, np.int32), np.ones(1)))
+    seg = sink.finish(np.zeros(3, np.int32))
+    assert seg.indptr is not None and np.array_equal(seg.indptr, np.concatenate([[0], np.cumsum(counts)]))
+    assert np.array_equal(map_segment(tmp_path / "seg-00000001.sci", UUID, N_WORDS).indptr, seg.indptr)
+
+
 def corrupt(path: Path, offset: int, data: bytes) -> None:
     raw = bytearray(path.read_bytes())
     raw[offset : offset + len(data)] = data
@@ -414,6 +431,15 @@ def test_sort_blocks_radix_sort_is_the_numpy_sort(n_words: int) -> None:
     b = sort_blocks(blocks, 0, 400, sessions, n_words, engine="compiled")
     assert a.words is not None and b.indptr is None
     assert np.array_equal(a.words, b.words) and np.array_equal(a.postings, b.postings)
+    # the working arrays kept from call to call (the index's): a smaller group after a larger
+    # one sorts in part of them, a larger one replaces them; the same segments every time
+    scratch: list[np.ndarray] = []
+    for k in (4, 2, 4, 1):
+        want = sort_blocks(blocks[:k], 0, 100 * k, sessions[: 100 * k], n_words, engine="numpy")
+        got = sort_blocks(blocks[:k], 0, 100 * k, sessions[: 100 * k], n_words, engine="compiled",
+                          scratch=scratch)
+        assert np.array_equal(want.words, got.words) and np.array_equal(want.postings, got.postings)
+        assert scratch and scratch[0].shape[0] == 8000
     ent = split(b.postings)[0]
     assert np.array_equal(np.lexsort((ent, b.words)), np.arange(ent.size))  # type: ignore[arg-type]
     for bad in (-1, n_words):
@@ -611,3 +637,90 @@ def test_replaced_segments_are_let_go_by_the_discarding_thread(tmp_path: Path) -
     files.wait_discarded()
     gc.collect()
     assert ref() is None and not (d / "seg-00000001.sci").exists()
+
+
+def _mapped_sum(seg: Segment) -> int:
+    return int(np.asarray(seg.postings, np.int64).sum()) + int(np.asarray(seg.sessions, np.int64).sum())
+
+
+def test_a_mapped_segment_file_is_deleted_but_never_shortened(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A replaced file that a query's snapshot still maps is unlinked whole: shortening it (to
+    free a large file's blocks step by step) would kill the process with SIGBUS at the next
+    page read past the new end. A file nobody maps is shortened step by step as before."""
+    from stablecues.database import files
+
+    cut: list[int] = []
+    real = os.ftruncate
+    monkeypatch.setattr(os, "ftruncate", lambda fd, n: (cut.append(n), real(fd, n))[1])
+    mapped = write(random_segment(400, seed=8), tmp_path / "seg-00000001.sci", True)
+    want = _mapped_sum(mapped)
+    files._unlink([tmp_path / "seg-00000001.sci"], step=512)
+    assert not (tmp_path / "seg-00000001.sci").exists() and not cut
+    assert _mapped_sum(mapped) == want  # every page still readable
+    path = tmp_path / "seg-00000002.sci"
+    write(random_segment(400, seed=9), path, True)
+    import gc
+
+    gc.collect()  # the write's own mapping is gone: nobody maps this file
+    files._unlink([path], step=512)
+    assert not path.exists() and len(cut) > 3
+
+
+def test_a_reader_process_mapping_a_replaced_file_survives_its_deletion(tmp_path: Path) -> None:
+    """The same across processes: a reader maps a segment file, the writer's discarding thread
+    deletes it meanwhile, and the reader still reads every page (exit code 0, not SIGBUS)."""
+    import subprocess
+    import sys
+
+    from stablecues.database import files
+
+    path = tmp_path / "seg-00000001.sci"
+    want = _mapped_sum(write(random_segment(400, seed=8), path, True))
+    code = (
+        "import sys, numpy as np\n"
+        "from pathlib import Path\n"
+        "from stablecues.database.segments import map_segment\n"
+        f"seg = map_segment(Path({str(path)!r}), bytes(range(16)), {N_WORDS})\n"
+        "print('mapped', flush=True)\n"
+        "sys.stdin.readline()\n"
+        "print(int(np.asarray(seg.postings, np.int64).sum()) + int(np.asarray(seg.sessions, np.int64).sum()))\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "mapped"
+        files._unlink([path], step=512)
+        assert not path.exists()
+        out, _ = proc.communicate("go\n", timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and int(out.strip()) == want
+
+
+def test_a_file_being_deleted_is_not_mapped(tmp_path: Path) -> None:
+    """While the discarding thread holds a file (between its lock and the unlink), mapping it
+    is refused as replaced, and ``open_segments`` asks for the manifest to be read again."""
+    import fcntl
+
+    from stablecues.database.files import Manifest, SegmentRecord, open_segments
+    from stablecues.database.segments import SegmentReplaced
+
+    seg = write(random_segment(40, seed=7), tmp_path / "seg-00000001.sci", False)
+    record = SegmentRecord("seg-00000001.sci", seg.lo, seg.hi, seg.size, seg.crc)
+    del seg
+    import gc
+
+    gc.collect()
+    fd = os.open(tmp_path / "seg-00000001.sci", os.O_WRONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(SegmentReplaced, match="seg-00000001.sci: index file is being deleted"):
+            map_segment(tmp_path / "seg-00000001.sci", UUID, N_WORDS)
+        got, missing = open_segments(tmp_path, Manifest(2, [record]), UUID, N_WORDS, 40)
+        assert got == [] and missing
+    finally:
+        os.close(fd)
+    got, missing = open_segments(tmp_path, Manifest(2, [record]), UUID, N_WORDS, 40)
+    assert len(got) == 1 and not missing

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DatabaseError
-from .segments import ChunkReader, FileSink, Segment, SegmentWriter, map_segment
+from .segments import ChunkReader, FileSink, Segment, SegmentReplaced, SegmentWriter, map_segment
 
 log = logging.getLogger(__name__)
 
@@ -151,22 +151,38 @@ def _unlink(paths: list[Path], segments: list[Segment] | None = None, step: int 
     large file (tearing down the page tables of gigabytes) happens in this thread, not in the
     one that replaced them: in an instrumented 10^6 build, steps that replaced segments took
     13-28 ms, 2-6 ms of it CPU, outside every part that was timed, where the last references
-    to the replaced segments were dropped."""
+    to the replaced segments were dropped.
+
+    A file is shortened only while this thread holds its ``flock`` exclusively: every mapping
+    of a segment file holds it shared (:func:`.segments.map_segment`), and a query still
+    running on the replaced segments, here or in a reader process, would be killed by SIGBUS
+    at the next page it reads past the new end. A file still mapped is only unlinked (the
+    kernel frees it when the last mapping goes); the lock, held until it is unlinked, also
+    keeps a reader from mapping it meanwhile."""
     if segments is not None:
         segments.clear()
     for path in paths:
-        with contextlib.suppress(OSError):
-            fd = os.open(path, os.O_WRONLY)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_NOFOLLOW)
+        except OSError:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            continue
+        try:
             try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 size = os.fstat(fd).st_size
+            except OSError:
+                size = 0  # mapped somewhere: deleted, not shortened
+            with contextlib.suppress(OSError):
                 while size > step:
                     size -= step
                     os.ftruncate(fd, size)
                     time.sleep(0.002)
-            finally:
-                os.close(fd)
-        with contextlib.suppress(OSError):
-            path.unlink()
+            with contextlib.suppress(OSError):
+                path.unlink()
+        finally:
+            os.close(fd)
 
 
 class IndexFiles:
@@ -390,7 +406,11 @@ def open_segments(
             if not path.is_file():
                 missing = True
                 raise DatabaseError(f"{path}: index file is missing")
-            seg = map_segment(path, uuid, n_words)
+            try:
+                seg = map_segment(path, uuid, n_words)
+            except SegmentReplaced:
+                missing = True
+                raise
             if (seg.lo, seg.hi, seg.size, seg.crc) != (rec.lo, rec.hi, rec.postings, rec.crc):
                 raise DatabaseError(f"{path}: index file does not match the manifest")
         except DatabaseError as exc:

@@ -151,6 +151,7 @@ class InvertedIndex:
         self._jobs: list[_Job] = []
         self._busy: set[int] = set()  # id() of segments in a job
         self._tail = _Tail()
+        self._scratch: list[np.ndarray] = []  # the sort's working arrays (one sort job at a time)
         self._sessions = np.zeros(1024, np.int32)
         self._alive: np.ndarray | None = None
         self._snap: _Snapshot | None = None
@@ -339,7 +340,7 @@ class InvertedIndex:
             bs = job.blocks
             # in memory first: with a store, the next job writes it to a file in bounded steps
             seg = sort_blocks([(b.words, b.postings) for b in bs], bs[0].lo, bs[-1].hi,
-                              np.concatenate([b.sessions for b in bs]), self.n_words)
+                              np.concatenate([b.sessions for b in bs]), self.n_words, scratch=self._scratch)
             job.inputs = [seg]
             return True, seg.size
         assert job.merge is not None

@@ -30,10 +30,12 @@ time, so that no step of index maintenance stalls the thread that runs it.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import mmap
 import os
 import struct
 import threading
+import weakref
 import zlib
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -184,10 +186,14 @@ def sort_block(
 
 def sort_blocks(
     blocks: Sequence[tuple[np.ndarray, np.ndarray]], lo: int, hi: int, sessions: np.ndarray,
-    n_words: int, engine: str = "auto",
+    n_words: int, engine: str = "auto", scratch: list[np.ndarray] | None = None,
 ) -> Segment:
     """An in-memory segment from consecutive blocks of unsorted postings (words, postings),
     oldest first, of the entries ``lo .. hi - 1``.
+
+    ``scratch``: the radix sort's working arrays, kept in this list from one call to the next
+    (one caller at a time): fresh ones cost the sort its page faults, 2.8 ms against 0.9 for
+    a group of 262k postings at 10^6 words.
 
     The compiled engine sorts by counting, O(P + W): sorting several blocks at once costs
     about what one costs (the per-word passes dominate a small block), so the latest
@@ -210,9 +216,15 @@ def sort_blocks(
             if words.shape[0] and (int(words.min()) < 0 or int(words.max()) >= n_words):
                 raise ValueError(f"postings to index hold words outside 0..{n_words - 1}")
             sw, sp = np.empty_like(words, np.int32), np.empty_like(postings, "<i8")
+            n = words.shape[0]
+            if scratch is None or not scratch or scratch[0].shape[0] < n:
+                work = [np.empty(n, np.int32), np.empty(n, "<i8")]
+                if scratch is not None:
+                    scratch[:] = work
+            else:
+                work = scratch
             radix.radix_words(np.ascontiguousarray(words, np.int32), np.ascontiguousarray(postings, "<i8"),
-                              max(int(n_words - 1).bit_length(), 1), sw, sp,
-                              np.empty_like(sw), np.empty_like(sp))
+                              max(int(n_words - 1).bit_length(), 1), sw, sp, work[0][:n], work[1][:n])
         else:
             order = word_order(words, n_words)
             sw = np.ascontiguousarray(words[order], np.int32)
@@ -248,7 +260,8 @@ class Sink(Protocol):
     """Where a merge writes its output, chunk by chunk in word order."""
 
     def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
-        """Postings of words ``w0 .. w0 + len(counts) - 1``, ``counts[i]`` of word ``w0 + i``."""
+        """Postings of words ``w0 .. w0 + len(counts) - 1``, ``counts[i]`` of word ``w0 + i``;
+        each append's words follow the previous one's."""
 
     def finish(self, sessions: np.ndarray) -> Segment: ...
 
@@ -501,9 +514,13 @@ class FileSink:
             writer.put(self, "open")
         self.crc = 0
         self.size = 0
-        # what the table is made of: each word's count (CSR), or the word of every posting so
-        # far (word form; ``total``: the postings expected)
-        self.counts: np.ndarray | None = np.zeros(n_words, np.int64) if csr else None
+        # the table, filled chunk by chunk as postings arrive in word order: the CSR offsets of
+        # the words up to ``_filled`` (the rest of the zeroed pages untouched until their chunk:
+        # made whole at the end, a fresh 8 MB table at 10^6 words took one step 15 ms of CPU in
+        # page faults, early in a 10^6 build), or the word of every posting so far (word form;
+        # ``total``: the postings expected)
+        self._indptr: np.ndarray | None = np.zeros(n_words + 1, "<i8") if csr else None
+        self._filled = 0
         self._words: np.ndarray | None = None if csr else np.empty(max(int(total), 0), "<i4")
         self._parts: list[np.ndarray] | None = None  # the tables and sessions as bytes, once made
         self._part = 0
@@ -561,10 +578,16 @@ class FileSink:
                 grown[: self.size] = self._words[: self.size]
                 self._words = grown
             self._words[self.size : self.size + n] = _table(counts, False, w0)
+        if self._indptr is not None:
+            if w0 < self._filled:
+                raise ValueError(f"postings of word {w0} appended after word {self._filled - 1}'s")
+            w1 = w0 + counts.shape[0]
+            self._indptr[self._filled + 1 : w0 + 1] = self.size  # words without postings
+            np.cumsum(counts, out=self._indptr[w0 + 1 : w1 + 1])
+            self._indptr[w0 + 1 : w1 + 1] += self.size
+            self._filled = w1
         self._write(postings)
         self.size += n
-        if self.counts is not None:
-            self.counts[w0 : w0 + counts.shape[0]] += counts
 
     def finish(self, sessions: np.ndarray) -> Segment:
         while True:
@@ -576,8 +599,9 @@ class FileSink:
         """Write the tables a slice of ``budget`` bytes at a time (a 10^6-word table is 8 MB);
         returns the segment once the file is complete, else None."""
         if self._parts is None:
-            if self.counts is not None:
-                table = _table(self.counts, True)
+            if self._indptr is not None:
+                self._indptr[self._filled + 1 :] = self.size
+                table = self._indptr
             else:
                 assert self._words is not None
                 table = self._words[: self.size]
@@ -616,16 +640,21 @@ class FileSink:
 
 
 # ---------------------------------------------------------------------------- files
-def read_header(path: Path, uuid: bytes, n_words: int) -> tuple[int, int, int, int, int]:
-    """Check a segment file's header against the database and the file's length.
+def read_header(path: Path, uuid: bytes, n_words: int, fd: int | None = None) -> tuple[int, int, int, int, int]:
+    """Check a segment file's header against the database and the file's length (``fd``: the
+    file already open, else it is opened by ``path``).
 
     Returns:
         form, lo, hi, postings, body CRC.
     """
     try:
-        with open(path, "rb") as f:
-            head = f.read(HEADER_SIZE)
-            size = os.fstat(f.fileno()).st_size
+        if fd is None:
+            with open(path, "rb") as f:
+                head = f.read(HEADER_SIZE)
+                size = os.fstat(f.fileno()).st_size
+        else:
+            head = os.pread(fd, HEADER_SIZE, 0)
+            size = os.fstat(fd).st_size
     except OSError as exc:
         raise DatabaseError(f"{path}: cannot read index file ({exc.strerror or exc})") from exc
     if len(head) < HEADER_SIZE or head[:4] != SEGMENT_MAGIC:
@@ -651,13 +680,41 @@ def read_header(path: Path, uuid: bytes, n_words: int) -> tuple[int, int, int, i
     return form, lo, hi, n_post, crc
 
 
+class SegmentReplaced(DatabaseError):
+    """A segment file that is being deleted (a newer manifest no longer names it)."""
+
+
+class _Mapping(mmap.mmap):
+    """A segment file's mapping, holding a shared ``flock`` on the file for as long as any
+    array made from it lives: the thread that deletes replaced files shortens a large file
+    step by step only when it gets the lock exclusively, i.e. when no process maps it (a
+    mapping whose file is shortened under it raises SIGBUS at the next read of a lost page)."""
+
+
 def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) -> Segment:
     """Memory-map a segment file after checking its header, length and tables (O(words),
     not O(postings): the body's checksum is checked by :func:`verify_segment`); ``trusted``
-    skips the tables' check (a file this process has just written)."""
-    form, lo, hi, n_post, crc = read_header(path, uuid, n_words)
-    with open(path, "rb") as f:
-        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    skips the tables' check (a file this process has just written).
+
+    Raises:
+        SegmentReplaced: the file is being deleted (read the manifest again).
+        DatabaseError: the file is missing, corrupt or not this database's.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError as exc:
+        raise DatabaseError(f"{path}: cannot read index file ({exc.strerror or exc})") from exc
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            raise SegmentReplaced(f"{path}: index file is being deleted (replaced by a newer one)") from exc
+        form, lo, hi, n_post, crc = read_header(path, uuid, n_words, fd)
+        mm = _Mapping(fd, 0, access=mmap.ACCESS_READ)
+    except BaseException:
+        os.close(fd)
+        raise
+    weakref.finalize(mm, os.close, fd)  # the lock goes with the last array made from the mapping
     off = HEADER_SIZE
     postings = np.frombuffer(mm, "<i8", n_post, off)
     off += 8 * n_post

@@ -167,16 +167,29 @@ def run_dataset(
         done = _complete_run(out, n)
         if done is not None:
             return done
-    writer = RunWriter(
-        out,
-        to_dict(config),
-        _run_meta(config, preset_name, n, {"dataset_frames": len(dataset), **(meta or {})}),
-        stages=STAGES,
-        mode="resume" if resume else ("overwrite" if overwrite else "new"),
-    )
-    if not resume and db_path.exists():
-        _remove_database(db_path, named=False)
-    detector = LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter)
+    # a database the user named outside the run folder is opened first: one that cannot be
+    # used (a damaged entry log, another vocabulary) is refused before the run folder is touched
+    early = (database is not None and db_path.parent.is_dir()
+             and out.resolve() not in db_path.resolve().parents)
+    detector = LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter) if early else None
+    try:
+        writer = RunWriter(
+            out,
+            to_dict(config),
+            _run_meta(config, preset_name, n, {"dataset_frames": len(dataset), **(meta or {})}),
+            stages=STAGES,
+            mode="resume" if resume else ("overwrite" if overwrite else "new"),
+        )
+    except BaseException:
+        if detector is not None:
+            detector.close()
+            if not resume:  # the empty map just made for this run
+                _remove_database(db_path, named=False)
+        raise
+    if detector is None:
+        if not resume and db_path.exists():
+            _remove_database(db_path, named=False)
+        detector = LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter)
     deferred = _DeferredCommit(detector.db)
     detector.db = deferred  # type: ignore[assignment]
     decisions: dict[int, LoopDecision] = {}
