@@ -685,7 +685,8 @@ def test_a_reader_process_mapping_a_replaced_file_survives_its_deletion(tmp_path
         f"seg = map_segment(Path({str(path)!r}), bytes(range(16)), {N_WORDS})\n"
         "print('mapped', flush=True)\n"
         "sys.stdin.readline()\n"
-        "print(int(np.asarray(seg.postings, np.int64).sum()) + int(np.asarray(seg.sessions, np.int64).sum()))\n"
+        "print(int(np.asarray(seg.postings, np.int64).sum())\n"
+        "      + int(np.asarray(seg.sessions, np.int64).sum()))\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             text=True)

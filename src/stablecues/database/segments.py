@@ -640,7 +640,9 @@ class FileSink:
 
 
 # ---------------------------------------------------------------------------- files
-def read_header(path: Path, uuid: bytes, n_words: int, fd: int | None = None) -> tuple[int, int, int, int, int]:
+def read_header(
+    path: Path, uuid: bytes, n_words: int, fd: int | None = None
+) -> tuple[int, int, int, int, int]:
     """Check a segment file's header against the database and the file's length (``fd``: the
     file already open, else it is opened by ``path``).
 

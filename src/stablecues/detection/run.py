@@ -171,7 +171,8 @@ def run_dataset(
     # used (a damaged entry log, another vocabulary) is refused before the run folder is touched
     early = (database is not None and db_path.parent.is_dir()
              and out.resolve() not in db_path.resolve().parents)
-    detector = LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter) if early else None
+    detector = (LoopDetector(config, vocabulary=vocabulary, database=db_path, segmenter=segmenter)
+                if early else None)
     try:
         writer = RunWriter(
             out,
