@@ -88,15 +88,16 @@ def fake_features(desc: np.ndarray, rng: np.random.Generator) -> Features:
     n = desc.shape[0]
     return Features(
         keypoints=(rng.random((n, 2)) * [640, 480]).astype(np.float32), descriptors=desc,
-        octaves=rng.integers(0, 8, n).astype(np.int16), angles=(rng.random(n) * 360).astype(np.float32),
-        responses=rng.random(n).astype(np.float32), sizes=np.full(n, 31, np.float32), image_size=(640, 480),
+        octaves=rng.integers(0, 8, n).astype(np.int16), angles=(rng.random((n,)) * 360).astype(np.float32),
+        responses=rng.random((n,)).astype(np.float32), sizes=np.full(n, 31, np.float32),
+        image_size=(640, 480),
     )
 
 
 def database_module(baseline: str | None) -> Any:
     if baseline:
         sys.path.insert(0, baseline)
-        import olddb  # type: ignore[import-not-found]
+        import olddb
 
         return olddb
     import stablecues.database as module
@@ -186,6 +187,35 @@ def adds_child(where: str, maintenance: str, n: int, baseline: str | None) -> No
     print(json.dumps(out))
 
 
+def gc_child() -> None:
+    """What a full garbage collection costs once the compiled kernels are loaded (the first
+    transform imports numba), with the library's freeze (default) or without it
+    (``STABLECUES_GC_FREEZE=0``): a full collection runs in whichever thread triggers it, an
+    add included."""
+    from stablecues.vocabulary import default_vocabulary
+
+    voc = default_vocabulary()
+    voc.transform(np.zeros((10, 32), np.uint8))
+    times = []
+    for _ in range(5):
+        t = time.perf_counter()
+        gc.collect()
+        times.append(time.perf_counter() - t)
+    print(json.dumps({"freeze": os.environ.get("STABLECUES_GC_FREEZE", "1") != "0",
+                      "tracked_objects": len(gc.get_objects()), "frozen_objects": gc.get_freeze_count(),
+                      "full_collection_ms": stats_ms(times), "load": load()}))
+
+
+def run_gc() -> dict[str, Any]:
+    out = {}
+    for setting in ("1", "0"):
+        env = {**os.environ, "STABLECUES_GC_FREEZE": setting}
+        proc = subprocess.run([sys.executable, __file__, "--child", "gc"], capture_output=True, text=True,
+                              env=env, check=True)
+        out["freeze" if setting == "1" else "no_freeze"] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return out
+
+
 def run_adds(repeat: int, n: int, baseline: str | None) -> dict[str, Any]:
     configs = [("memory", "inline"), ("memory", "background"), ("memory", "bow-only"), ("memory", "control"),
                ("file", "inline"), ("file", "background"), ("file", "paced")]
@@ -232,19 +262,20 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
     # [entry, wall ms, CPU ms of the adding thread, ms of full garbage collections (any thread)
     # inside it] of every add over 10 ms
     slow = []
-    full_gc: list[list[float]] = []  # [start, end] of every collection of the oldest generation
+    # [start, end, adds done before it] of every collection of the oldest generation
+    full_gc: list[list[float]] = []
+    i = start
 
     def on_gc(phase: str, info: dict[str, int]) -> None:
         if info["generation"] == 2:
             if phase == "start":
-                full_gc.append([time.perf_counter(), float("nan")])
+                full_gc.append([time.perf_counter(), float("nan"), i - start])
             elif full_gc:
                 full_gc[-1][1] = time.perf_counter()
 
     gc.callbacks.append(on_gc)
     load0 = load()
     deadline = time.perf_counter() + budget_s
-    i = start
     while i < n_total and time.perf_counter() < deadline:
         d = maker.next()
         bow, fvec = voc.transform(d)
@@ -255,7 +286,7 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
         dt = time.perf_counter() - t
         times.append(dt)
         if dt > 0.010:
-            in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b in full_gc[-3:])
+            in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b, _ in full_gc[-3:])
             cpu = time.thread_time() - c
             slow.append([i, round(1e3 * dt, 2), round(1e3 * cpu, 2), round(1e3 * in_gc, 2)])
         if i % max(n_total // 200, 1) == 0:
@@ -269,7 +300,9 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
     print(json.dumps({"start": start, "end": i, "add_s": float(np.sum(times)),
                       "wall_s": round(time.perf_counter() - t0, 3),
                       "add_ms": stats_ms(times) if times else {}, "slow_adds": slow,
-                      "full_gc_ms": [round(1e3 * (b - a), 2) for a, b in full_gc],
+                      # [ms, adds done before it]: numba's import (the first transform) runs
+                      # a few before the first add
+                      "full_gc_ms": [[round(1e3 * (b - a), 2), int(k)] for a, b, k in full_gc],
                       "open_s": round(open_s, 3),
                       "close_s": round(close_s, 3), "load": [load0, load()], **memory_gb()}))
 
@@ -329,6 +362,7 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
     maker = EntryMaker(voc, n_features=n_features, seed=10**7 + start)
     rng = np.random.default_rng(start)
     times = []
+    slow = []  # [add, wall ms, CPU ms of the adding thread] of every add over 10 ms
     load0 = load()
     next_at = time.perf_counter()
     for i in range(n):
@@ -337,12 +371,16 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
         feats = fake_features(d, rng)
         next_at += 1.0 / hz
         time.sleep(max(next_at - time.perf_counter(), 0.0))
+        c = time.thread_time()
         t = time.perf_counter()
         db.add(bow, fvec, feats, timestamp=float(start + i))
-        times.append(time.perf_counter() - t)
+        dt = time.perf_counter() - t
+        times.append(dt)
+        if dt > 0.010:
+            slow.append([i, round(1e3 * dt, 2), round(1e3 * (time.thread_time() - c), 2)])
     db.close()
     print(json.dumps({"entries_before": start, "adds": n, "hz": hz, "add_ms": stats_ms(times),
-                      "load": [load0, load()]}))
+                      "slow_adds": slow, "load": [load0, load()]}))
 
 
 def run_large(name: str, work: Path, n: int, n_features: int, descriptors: bool, chunk_s: float,
@@ -356,6 +394,7 @@ def run_large(name: str, work: Path, n: int, n_features: int, descriptors: bool,
     log_path = work / f"{name}.build.json"
     chunks: list[dict[str, Any]] = json.loads(log_path.read_text()) if log_path.exists() else []
     done = chunks[-1]["end"] if chunks else 0
+    built_now = done < n
     while done < n:
         print(f"  {name}: {done} entries, adding for up to {chunk_s:.0f} s ...", flush=True)
         res = child(["--child", "build", str(voc_path), str(db_path), str(n), str(n_features),
@@ -373,7 +412,7 @@ def run_large(name: str, work: Path, n: int, n_features: int, descriptors: bool,
                    "2000", "100"])
     med = {k: float(np.median([x[k] for x in reopens])) for k in ("reopen_s", "rss_gb_after_queries")}
     return {
-        "entries": n, "features": n_features, "descriptors_stored": descriptors,
+        "entries": n, "features": n_features, "descriptors_stored": descriptors, "built_now": built_now,
         "build_chunks": len(chunks), "add_per_s": round(n / add_s, 1),
         # everything a build does per entry: synthetic descriptors, transform, features, add
         "build_entries_per_s": round(n / sum(c.get("wall_s", float("nan")) for c in chunks), 1),
@@ -428,6 +467,8 @@ def summary(results: dict[str, Any]) -> dict[str, Any]:
             name = "" if where == "memory" else "_file"
             out[f"add_ms_mean_10k{name}{key}"] = {"value": r["add_ms"]["mean"], "load": loads}
             out[f"add_ms_max_10k{name}{key}"] = {"value": r["add_ms"]["max"], "load": loads}
+    if "gc" in results:
+        out["full_gc_ms"] = {k: v["full_collection_ms"]["median"] for k, v in results["gc"].items()}
     for key, name in (("100k", "100k"), ("1m", "1m")):
         r = results.get(key)
         if not r:
@@ -456,7 +497,7 @@ def summary(results: dict[str, Any]) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--parts", default="adds,100k,1m", help="comma-separated: adds, 100k, 1m")
+    ap.add_argument("--parts", default="gc,adds,100k,1m", help="comma-separated: gc, adds, 100k, 1m")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each add and reopen measurement")
     ap.add_argument("--adds", type=int, default=10_000)
     ap.add_argument("--entries-100k", type=int, default=100_000)
@@ -476,6 +517,8 @@ def main() -> None:
         elif kind == "build":
             build_child(rest[0], rest[1], int(rest[2]), int(rest[3]), bool(int(rest[4])),
                         float(rest[5]), int(rest[6]))
+        elif kind == "gc":
+            gc_child()
         elif kind == "paced":
             paced_child(rest[0], rest[1], int(rest[2]), bool(int(rest[3])), int(rest[4]), float(rest[5]))
         else:
@@ -486,6 +529,9 @@ def main() -> None:
     results.update({"machine": f"{os.cpu_count()} cores, shared", "threads": 1,
                     "memory_gb": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)})
     parts = args.parts.split(",")
+    if "gc" in parts:
+        print("gc: a full collection with and without the freeze ...", flush=True)
+        results["gc"] = run_gc()
     if "adds" in parts:
         print(f"adds: {args.adds} single adds, {args.repeat} runs each ...", flush=True)
         key = "adds_baseline" if args.baseline else "adds"
@@ -496,7 +542,8 @@ def main() -> None:
     if "1m" in parts:
         results["1m"] = run_large("map1m", args.work, args.entries_1m, 300, False, args.chunk_s,
                                   args.queries, args.repeat)
-        results.setdefault("1m_builds", []).append(build_record(results["1m"]))
+        if results["1m"]["built_now"]:  # not a rerun of the reopen and paced parts on a built map
+            results.setdefault("1m_builds", []).append(build_record(results["1m"]))
     results["summary"] = summary(results)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
