@@ -709,8 +709,10 @@ def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) ->
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError as exc:
+        except BlockingIOError as exc:
             raise SegmentReplaced(f"{path}: index file is being deleted (replaced by a newer one)") from exc
+        except OSError:
+            pass  # a file system without flock: mapped unlocked (the deleting thread cannot lock it either)
         form, lo, hi, n_post, crc = read_header(path, uuid, n_words, fd)
         mm = _Mapping(fd, 0, access=mmap.ACCESS_READ)
     except BaseException:
