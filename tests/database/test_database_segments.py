@@ -399,6 +399,20 @@ def test_sort_blocks_counting_sort_is_the_numpy_sort(csr: bool, monkeypatch: pyt
     for seg in (b, one):
         assert np.array_equal(seg.postings, a.postings) and (seg.indptr is not None) == csr
         assert np.array_equal(seg.indptr if csr else seg.words, a.indptr if csr else a.words)
+    # the working arrays kept from call to call (the index's): groups one after another sort
+    # into the same ones and give the segments a fresh sort gives, the last one's untouched
+    scratch: dict[str, np.ndarray] = {}
+    kept = None
+    for k in (4, 2, 3):
+        want = sort_blocks(blocks[:k], 0, 15 * k, sessions[: 15 * k], N_WORDS, engine="numpy")
+        got = sort_blocks(blocks[:k], 0, 15 * k, sessions[: 15 * k], N_WORDS, engine="compiled",
+                          scratch=scratch)
+        assert np.array_equal(want.postings, got.postings)
+        assert np.array_equal(want.indptr if csr else want.words, got.indptr if csr else got.words)
+        if csr:
+            assert kept is None or scratch["dest"] is kept
+            kept = scratch["dest"]
+            assert not np.shares_memory(got.indptr, kept)  # type: ignore[arg-type]
     words = np.repeat(np.arange(N_WORDS), np.diff(a.indptr)) if csr else a.words
     ent = split(a.postings)[0]
     assert np.array_equal(np.lexsort((ent, words)), np.arange(ent.size))
@@ -433,13 +447,13 @@ def test_sort_blocks_radix_sort_is_the_numpy_sort(n_words: int) -> None:
     assert np.array_equal(a.words, b.words) and np.array_equal(a.postings, b.postings)
     # the working arrays kept from call to call (the index's): a smaller group after a larger
     # one sorts in part of them, a larger one replaces them; the same segments every time
-    scratch: list[np.ndarray] = []
+    scratch: dict[str, np.ndarray] = {}
     for k in (4, 2, 4, 1):
         want = sort_blocks(blocks[:k], 0, 100 * k, sessions[: 100 * k], n_words, engine="numpy")
         got = sort_blocks(blocks[:k], 0, 100 * k, sessions[: 100 * k], n_words, engine="compiled",
                           scratch=scratch)
         assert np.array_equal(want.words, got.words) and np.array_equal(want.postings, got.postings)
-        assert scratch and scratch[0].shape[0] == 8000
+        assert scratch["words"].shape[0] == scratch["postings"].shape[0] == 8000
     ent = split(b.postings)[0]
     assert np.array_equal(np.lexsort((ent, b.words)), np.arange(ent.size))  # type: ignore[arg-type]
     for bad in (-1, n_words):

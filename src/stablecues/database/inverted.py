@@ -151,7 +151,7 @@ class InvertedIndex:
         self._jobs: list[_Job] = []
         self._busy: set[int] = set()  # id() of segments in a job
         self._tail = _Tail()
-        self._scratch: list[np.ndarray] = []  # the sort's working arrays (one sort job at a time)
+        self._scratch: dict[str, np.ndarray] = {}  # the sort's working arrays (one sort job at a time)
         self._sessions = np.zeros(1024, np.int32)
         self._alive: np.ndarray | None = None
         self._snap: _Snapshot | None = None
