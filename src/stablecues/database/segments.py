@@ -195,7 +195,7 @@ def sort_blocks(
     ``scratch``: the sort's working arrays, kept in this dict from one call to the next (one
     caller at a time): fresh ones cost the sort its page faults, 2.8 ms against 0.9 for a group
     of 262k postings at 10^6 words by radix; a counting sort of 264k postings at 96,618 words
-    touched 1,082 fresh pages without them and 704 with (the segment's own), and a fresh page
+    touched about 894 fresh pages without them and 704 with (the segment's own), and a fresh page
     cost this virtual machine 1-17 us (2.3-13 ms for the sort).
 
     The compiled engine sorts by counting, O(P + W): sorting several blocks at once costs
