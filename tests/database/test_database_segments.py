@@ -403,12 +403,15 @@ def test_sort_blocks_counting_sort_is_the_numpy_sort(csr: bool, monkeypatch: pyt
     # into the same ones and give the segments a fresh sort gives, the last one's untouched
     scratch: dict[str, np.ndarray] = {}
     kept = None
+    sorted_: list[tuple[Segment, Segment]] = []
     for k in (4, 2, 3):
         want = sort_blocks(blocks[:k], 0, 15 * k, sessions[: 15 * k], N_WORDS, engine="numpy")
         got = sort_blocks(blocks[:k], 0, 15 * k, sessions[: 15 * k], N_WORDS, engine="compiled",
                           scratch=scratch)
-        assert np.array_equal(want.postings, got.postings)
-        assert np.array_equal(want.indptr if csr else want.words, got.indptr if csr else got.words)
+        sorted_.append((want, got))
+        for w, g in sorted_:  # this one right, and the ones before it untouched by its sort
+            assert np.array_equal(w.postings, g.postings)
+            assert np.array_equal(w.indptr if csr else w.words, g.indptr if csr else g.words)
         if csr:
             assert kept is None or scratch["dest"] is kept
             kept = scratch["dest"]
