@@ -83,3 +83,29 @@ def test_kitti_pair_148_m_apart_is_rejected(capsys: pytest.CaptureFixture[str]) 
     pair = ImagePairVerifier(load_calibration(calib), classic)
     res = pair.verify(d / "kitti06-435.png", d / "kitti06-01.png")
     assert res.verification.accepted and res.verification.n_inliers == 12
+
+
+def test_verify_a_day_night_pair_with_learned_features(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """Gardens Point, no calibration: one place by night against the same place by day is
+    accepted with XFeat (ORB finds next to no matches there), places 30 apart are rejected; the
+    result names the matcher and the verifier."""
+    gp = shared_path("gardens_point_dev")
+    night, day = gp / "night_right" / "Image040.jpg", gp / "day_right"
+    out = tmp_path / "r.json"
+    args = ["--features", "xfeat", "--n-features", "1000", "--preset", "learned"]
+    assert main(["verify", str(night), str(day / "Image040.jpg"), *args, "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "ACCEPTED by fundamental" in text and "(matcher mnn)" in text
+    record = json.loads(out.read_text())
+    assert record["result"]["matcher"] == "mnn" and record["result"]["method"] == "fundamental"
+    assert record["features"]["name"] == "xfeat" and record["calibration"].startswith("none")
+    assert main(["verify", str(night), str(day / "Image070.jpg"), *args]) == 0
+    assert "REJECTED" in capsys.readouterr().out
+    assert main(["verify", str(night), str(day / "Image040.jpg")]) == 0  # ORB, the default
+    assert "REJECTED" in capsys.readouterr().out
+
+
+def test_verify_without_calibration_refuses_stereo(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["verify", "a.png", "b.png", "--right-a", "x.png", "--right-b", "y.png"]) == 1
+    assert "need a calibration" in capsys.readouterr().err

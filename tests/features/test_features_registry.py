@@ -71,7 +71,7 @@ def own_registry(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_builtin_names_default_first() -> None:
-    assert extractor_names() == ["orb", "sift"]
+    assert extractor_names() == ["orb", "sift", "xfeat"]
     assert extractor_config_class("orb") is OrbConfig and extractor_config_class("sift") is SiftConfig
 
 
@@ -142,4 +142,4 @@ def test_malformed_registrations_are_refused() -> None:
 
     with pytest.raises(ConfigError, match="needs defaults for weights"):
         register_extractor("needs-weights", NeedsWeights, HalfOrbExtractor)
-    assert extractor_names() == ["orb", "sift"]  # nothing of the above was registered
+    assert extractor_names() == ["orb", "sift", "xfeat"]  # nothing of the above was registered

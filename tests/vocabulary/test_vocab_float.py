@@ -248,12 +248,15 @@ def test_the_text_format_refuses_float_words(tmp_path: Path) -> None:
 
 
 def test_shipped_vocabularies_by_extractor() -> None:
-    assert set(DEFAULT_VOCABULARIES) == {"orb", "sift"}
+    assert set(DEFAULT_VOCABULARIES) == {"orb", "sift", "xfeat"}
     assert default_vocabulary() is default_vocabulary("orb")
     assert default_vocabulary().descriptor_kind == DescriptorKind("binary", 32)
     sift = default_vocabulary("sift")
     assert sift.descriptor_kind == DescriptorKind("float", 128)
     assert default_vocabulary_path("sift").stat().st_size < 20 * 2**20
+    xfeat = default_vocabulary("xfeat")
+    assert xfeat.descriptor_kind == DescriptorKind("float", 64) and xfeat.n_words == 10_000
+    assert default_vocabulary_path("xfeat").stat().st_size < 20 * 2**20
     with pytest.raises(ConfigError, match="no vocabulary is shipped for features 'akaze'"):
         default_vocabulary_path("akaze")
 

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .options import add_extractor_options, extractor_from_args
+
+if TYPE_CHECKING:
+    from ..geometry import Calibration
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -24,8 +28,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("image_b", type=Path, help="candidate image")
     p.add_argument(
         "--calib",
-        required=True,
-        help="calibration: EuRoC sensor.yaml (left), KITTI calib.txt, ORB-SLAM settings yaml, or fr1/fr2/fr3",
+        help="calibration: EuRoC sensor.yaml (left), KITTI calib.txt, ORB-SLAM settings yaml, or "
+             "fr1/fr2/fr3; without it the images are monocular, the focal length guessed from A's size "
+             "(1.2 x its larger side), and the fundamental-matrix check decides",
     )
     p.add_argument("--calib-right", type=Path, help="right camera's EuRoC sensor.yaml, when not found beside")
     g = p.add_mutually_exclusive_group()
@@ -37,7 +42,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--method", choices=("triangles", "pnp", "fundamental"), help="verifier (default triangles)"
     )
-    p.add_argument("--preset", default="default", help="settings preset: default, paper, dloop, pnp")
+    p.add_argument("--preset", default="default",
+                   help="settings preset: default, paper, dloop, pnp, learned (for learned features: "
+                        "mutual nearest neighbours, a loose ratio)")
+    p.add_argument("--matcher", choices=("ratio", "mnn"),
+                   help="ratio: Lowe's ratio test (DBoW2); mnn: mutual nearest neighbours, brute force")
     p.add_argument("--tolerance", choices=("noise", "relative"), help="triangle side tolerance")
     p.add_argument("--triangles", type=int, help="number of triangles T")
     p.add_argument("--acceptance", choices=("all", "majority", "at_least"), help="triangle acceptance rule")
@@ -76,13 +85,30 @@ def check_image_size(path: Path | None, size: tuple[int, int] | None, source: st
         )
 
 
+def _calibration(args: argparse.Namespace) -> Calibration:
+    """The calibration the options name, or a monocular one guessed from image A's size."""
+    from ..errors import InputError
+    from ..geometry import Calibration, load_calibration, load_euroc_stereo
+    from ..geometry.twoview import guess_camera
+    from ..imageio import read_image
+
+    if args.calib is None:
+        if args.calib_right is not None or args.right_a is not None or args.depth_a is not None:
+            raise InputError("stereo and depth images need a calibration: give --calib")
+        h, w = read_image(args.image_a, "grey").shape[:2]
+        return Calibration(left=guess_camera(w, h), source=f"none (focal guessed from {args.image_a.name})")
+    if args.calib_right:
+        return load_euroc_stereo(args.calib, args.calib_right)
+    return load_calibration(args.calib)
+
+
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from ..config import to_dict
     from ..detection.pair import ImagePairVerifier
     from ..errors import InputError
-    from ..geometry import load_calibration, load_euroc_stereo, rotation_angle_deg
+    from ..geometry import rotation_angle_deg
     from ..verification import preset
 
     if (args.right_a is None) != (args.right_b is None):
@@ -92,9 +118,7 @@ def run(args: argparse.Namespace) -> int:
     if args.right_b is not None and args.depth_b is not None:
         raise InputError("give right images or depth images, not both")
 
-    calib = (
-        load_euroc_stereo(args.calib, args.calib_right) if args.calib_right else load_calibration(args.calib)
-    )
+    calib = _calibration(args)
     if args.depth_scale is not None:
         calib = dataclasses.replace(calib, depth_scale=args.depth_scale)
     right_size = calib.right.image_size if calib.right is not None else None
@@ -106,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         key: value
         for key, value in (
             ("method", args.method),
+            ("matcher", args.matcher),
             ("tolerance", args.tolerance),
             ("n_triangles", args.triangles),
             ("acceptance", args.acceptance),
@@ -128,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
 
     decision = "ACCEPTED" if res.accepted else "REJECTED"
     fallback = " (fallback: no 3D points)" if res.fallback else ""
-    print(f"decision:   {decision} by {res.method.value}{fallback}: {res.status.value}")
+    print(f"decision:   {decision} by {res.method.value}{fallback}: {res.status.value} "
+          f"(matcher {res.matcher})")
     print(f"reason:     {res.reason}")
     print(f"matches:    {res.n_matches}   inliers: {res.n_inliers}")
     if res.triangles:

@@ -246,6 +246,9 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
                         "segmentation_precision": "int8", "monocular": {}, "masking": _DEFAULT_MASKING},
                        "the default + monocular 3D: frames without other 3D triangulated against a "
                        "neighbour, loops checked by similar triangles where they can be formed"),
+    "learned": (None, "learned", {"query": _MEASURED_QUERY, "features": {"name": "xfeat"}},
+                "pretrained XFeat features (ONNX) with their own vocabulary, matched by mutual nearest "
+                "neighbours; the default's query; for changing light (day/night)"),
     "paper": ("paper", "paper", {},
               "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
     "bow": (None, "dloop", {}, "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),

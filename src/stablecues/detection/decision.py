@@ -142,6 +142,7 @@ class LoopDecision:
         if v is not None:
             out.update(
                 verifier=str(v.method),
+                matcher=v.matcher,
                 verification=str(v.status),
                 reason=v.reason,
                 inliers=v.n_inliers,

@@ -1,4 +1,4 @@
-"""Local features behind one :class:`Extractor` protocol, chosen by name (ORB, SIFT, ...)."""
+"""Local features behind one :class:`Extractor` protocol, chosen by name (ORB, SIFT, XFeat, ...)."""
 
 from .base import Extractor, ExtractorConfig
 from .orb import OrbConfig, OrbExtractor, distribute_quadtree
@@ -11,6 +11,7 @@ from .registry import (
     register_extractor,
 )
 from .sift import SiftConfig, SiftExtractor
+from .xfeat import XFeatConfig, XFeatExtractor
 
 __all__ = [
     "DEFAULT_EXTRACTOR",
@@ -20,6 +21,8 @@ __all__ = [
     "OrbExtractor",
     "SiftConfig",
     "SiftExtractor",
+    "XFeatConfig",
+    "XFeatExtractor",
     "distribute_quadtree",
     "extractor_config",
     "extractor_config_class",

@@ -23,6 +23,7 @@ from ..errors import ConfigError
 from .base import Extractor, ExtractorConfig
 from .orb import OrbConfig, OrbExtractor
 from .sift import SiftConfig, SiftExtractor
+from .xfeat import XFeatConfig, XFeatExtractor
 
 __all__ = [
     "DEFAULT_EXTRACTOR",
@@ -41,6 +42,7 @@ ExtractorFactory = Callable[[Any], Extractor]
 _EXTRACTORS: dict[str, tuple[type[ExtractorConfig], ExtractorFactory]] = {
     "orb": (OrbConfig, OrbExtractor),
     "sift": (SiftConfig, SiftExtractor),
+    "xfeat": (XFeatConfig, XFeatExtractor),
 }
 
 

@@ -12,6 +12,7 @@ from ..geometry.triangles import TriangleConfig
 __all__ = ["VerificationConfig", "PRESETS", "preset"]
 
 _METHODS = ("triangles", "fundamental", "pnp")
+_MATCHERS = ("ratio", "mnn")
 _ACCEPTANCE = ("all", "majority", "at_least")
 
 
@@ -21,6 +22,12 @@ class VerificationConfig:
 
     Attributes:
         method: ``"triangles"`` (the paper), ``"pnp"`` or ``"fundamental"`` (DLoopDetector).
+        matcher: how the correspondences are found before any geometry: ``"ratio"`` (DBoW2 /
+            ORB-SLAM: Lowe's ratio test, through the vocabulary's direct index when both
+            frames have one, else over all features) or ``"mnn"`` (mutual nearest neighbours over
+            all features, brute force, with the same ``ratio`` and ``max_distance`` gates: the
+            usual matcher of learned descriptors, which a day/night change moves too far for
+            the direct index's shared vocabulary nodes).
         ratio: Lowe's ratio for matching. 0.8 is Lowe's value; ORB-SLAM uses 0.75 for loop
             search. Matches are further filtered by the geometry, so we keep more.
         max_distance: largest Hamming distance of a match (of 256 bits). ORB-SLAM's TH_LOW is
@@ -82,6 +89,7 @@ class VerificationConfig:
     """
 
     method: str = "triangles"
+    matcher: str = "ratio"
     ratio: float = 0.8
     max_distance: int = 64
     cross_check: bool = False
@@ -111,6 +119,8 @@ class VerificationConfig:
             raise ConfigError(f"static_px must be >= 0 or None, got {self.static_px}")
         if self.method not in _METHODS:
             raise ConfigError(f"verification method {self.method!r}: expected one of {', '.join(_METHODS)}")
+        if self.matcher not in _MATCHERS:
+            raise ConfigError(f"matcher {self.matcher!r}: expected one of {', '.join(_MATCHERS)}")
         if self.acceptance not in _ACCEPTANCE:
             raise ConfigError(f"acceptance {self.acceptance!r}: expected one of {', '.join(_ACCEPTANCE)}")
         if self.acceptance == "at_least" and not 1 <= self.min_agree <= self.n_triangles:
@@ -161,6 +171,10 @@ PRESETS: dict[str, dict[str, object]] = {
     "dloop": {"method": "fundamental", "ratio": 0.6, "min_fundamental_inliers": 12,
               "min_fundamental_ratio": 0.0, "fundamental_method": "ransac", "static_px": None},
     "pnp": {"method": "pnp"},
+    # learned float descriptors (XFeat): mutual nearest neighbours over all features with a loose
+    # ratio (0.9) and distance (100 of 256: cosine >= 0.69); Gardens Point day/night pairs of one
+    # place keep 15-170 fundamental inliers, pairs of places 50 apart <= 12 (bench_learned.py)
+    "learned": {"matcher": "mnn", "ratio": 0.9, "max_distance": 100},
 }
 
 

@@ -152,7 +152,7 @@ def scaled_distances(
         if ia is None or ib is None:
             sq = 2.0 - 2.0 * (ua @ ub.T)
         else:
-            sq = np.einsum("ij,ij->i", ua[ia] - ub[ib], ua[ia] - ub[ib])
+            return _pair_distances(ua, ub, ia, ib)
         return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
     wa, wb = as_words(a), as_words(b)
     h = hamming_cross(wa, wb) if ia is None or ib is None else hamming_rows(wa[ia], wb[ib])
@@ -228,6 +228,39 @@ def _best_two_grouped(
     return best_pos, best, second
 
 
+def _best_two_float(
+    a: np.ndarray, b: np.ndarray, cross_check: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Brute force over float descriptors: per query feature its nearest candidate, the best and
+    second-best distances (on :func:`scaled_distances`' scale) and, with ``cross_check``, each
+    candidate's nearest query feature (else an empty array).
+
+    The nearest neighbours come from one float32 product of the unit vectors (BLAS; the full
+    (N, M) distance matrix of :func:`scaled_distances` is never made); the distances of the pairs
+    chosen are then computed as :func:`scaled_distances` computes them.
+    """
+    _checked_kind(a, b)
+    n, m = a.shape[0], b.shape[0]
+    ua, ub = _unit(a), _unit(b)
+    sim = ua.astype(np.float32) @ ub.astype(np.float32).T
+    rows = np.arange(n)
+    best_j = np.argmax(sim, axis=1).astype(np.int64)
+    back = np.argmax(sim, axis=0).astype(np.int64) if cross_check else np.zeros(0, np.int64)
+    best = _pair_distances(ua, ub, rows, best_j)
+    if m < 2:
+        return best_j, best, np.full(n, _NONE, np.int64), back
+    sim[rows, best_j] = -np.inf
+    second = _pair_distances(ua, ub, rows, np.argmax(sim, axis=1))
+    return best_j, best, np.maximum(second, best), back
+
+
+def _pair_distances(ua: np.ndarray, ub: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """:func:`scaled_distances` of unit float vectors' pairs ``(ua[ia], ub[ib])``."""
+    diff = ua[ia] - ub[ib]
+    sq = np.einsum("ij,ij->i", diff, diff)
+    return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
+
+
 def match_features(
     query: Features,
     candidate: Features,
@@ -294,6 +327,9 @@ def match_features(
             ckey = np.full(m, np.iinfo(np.int64).max, np.int64)
             np.minimum.at(ckey, ci, (dist.astype(np.int64) << 32) | qi)
             back = np.where(ckey == np.iinfo(np.int64).max, -1, ckey & 0xFFFFFFFF)
+    elif DescriptorKind.of(query.descriptors, "query descriptors").kind == "float":
+        best_j, best, second, back = _best_two_float(query.descriptors, candidate.descriptors, cross_check)
+        has = np.ones(n, bool)
     else:
         d = scaled_distances(query.descriptors, candidate.descriptors)
         best_j = np.argmin(d, axis=1).astype(np.int64)

@@ -61,6 +61,7 @@ class Verification:
             ``method`` is the one that stood in (PnP when only the candidate has 3D,
             the fundamental matrix when the candidate has none).
         matches: all ranked correspondences that were checked.
+        matcher: the matcher that found them (``VerificationConfig.matcher``: "ratio", "mnn").
         inliers: (M,) bool over ``matches``: PnP inliers, fundamental-matrix inliers, or the
             vertices of agreeing triangles when no pose was estimated.
         triangles: every checked triangle (triangle verifier only).
@@ -84,6 +85,7 @@ class Verification:
     matches: Matches
     inliers: np.ndarray
     fallback: bool = False
+    matcher: str = "ratio"
     triangles: tuple[Triangle, ...] = ()
     n_triangles_agree: int = 0
     rotation: np.ndarray | None = None
@@ -142,6 +144,7 @@ class Verification:
             "status": self.status.value,
             "reason": self.reason,
             "fallback": self.fallback,
+            "matcher": self.matcher,
             "n_matches": self.n_matches,
             "n_inliers": self.n_inliers,
             "n_triangles": len(self.triangles),

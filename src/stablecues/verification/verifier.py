@@ -164,7 +164,8 @@ class Verifier:
         """
         cfg = self.config
         t0 = time.perf_counter()
-        use_fvec = query.fvec is not None and candidate.fvec is not None
+        mnn = cfg.matcher == "mnn"
+        use_fvec = not mnn and query.fvec is not None and candidate.fvec is not None
         matches = match_features(
             query.features,
             candidate.features,
@@ -172,7 +173,7 @@ class Verifier:
             candidate.fvec if use_fvec else None,
             ratio=cfg.ratio,
             max_distance=cfg.max_distance,
-            cross_check=cfg.cross_check,
+            cross_check=cfg.cross_check or mnn,
         )
         static = 0
         if cfg.static_px is not None and len(matches):
@@ -188,17 +189,17 @@ class Verifier:
         method = self._method_for(configured, query, candidate)
         fallback = method is not configured
         if len(matches) < must_beat:
-            ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static)
+            ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, cfg.matcher)
             return ctx.finish(Status.OUTRANKED, f"{len(matches)} matches cannot reach the {must_beat} "
                                                 "inliers of a loop already accepted (not checked)")
         if fallback and not cfg.fallback:
-            ctx = _Context(query, candidate, matches, configured, False, t0, timings, static)
+            ctx = _Context(query, candidate, matches, configured, False, t0, timings, static, cfg.matcher)
             return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")
         if fallback:
             logger.debug("no 3D points for %s: falling back to %s", cfg.method, method.value)
         if method is Method.TRIANGLES and not _metric(query.points, candidate.points):
             method = Method.SIMILAR_TRIANGLES  # a monocular side: its scale is unknown
-        ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static)
+        ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, cfg.matcher)
         return self._checks[method](ctx)
 
     @property
@@ -422,6 +423,7 @@ class _Context:
     t0: float
     timings: dict[str, float]
     static: int = 0  # matches left out as fixed to the camera (``static_px``)
+    matcher: str = "ratio"  # the matcher that found ``matches``
 
     def finish(
         self, status: Status, reason: str, *, inliers: np.ndarray | None = None, **geometry: Any
@@ -440,6 +442,7 @@ class _Context:
             matches=m,
             inliers=np.zeros(len(m), bool) if inliers is None else inliers,
             fallback=self.fallback,
+            matcher=self.matcher,
             timings=self.timings,
             pixels_query=self.query.features.keypoints[m.query],
             pixels_candidate=self.candidate.features.keypoints[m.candidate],

@@ -19,7 +19,8 @@ from .tree import Vocabulary, VocabularyInfo
 
 DEFAULT_VOCABULARY = "vocab_orb_k10_L5.scv"
 #: extractor name -> the vocabulary shipped for its descriptors (see ``src/stablecues/data``)
-DEFAULT_VOCABULARIES = {"orb": DEFAULT_VOCABULARY, "sift": "vocab_sift_k10_L4.scv"}
+DEFAULT_VOCABULARIES = {"orb": DEFAULT_VOCABULARY, "sift": "vocab_sift_k10_L4.scv",
+                        "xfeat": "vocab_xfeat_k10_L4.scv"}
 
 __all__ = [
     "DEFAULT_VOCABULARIES", "DEFAULT_VOCABULARY", "Scoring", "Vocabulary", "VocabularyInfo",
@@ -31,7 +32,8 @@ __all__ = [
 
 def default_vocabulary_path(features: str = "orb") -> Path:
     """Path of the vocabulary shipped in the package for the extractor named ``features``
-    ("orb": ``scripts/make_vocabulary.py``, "sift": ``scripts/make_sift_vocabulary.py``).
+    ("orb": ``scripts/make_vocabulary.py``, "sift": ``scripts/make_sift_vocabulary.py``,
+    "xfeat": ``scripts/make_xfeat_vocabulary.py``).
 
     Raises:
         ConfigError: no vocabulary is shipped for that extractor.
