@@ -103,6 +103,12 @@ class DatabaseConfig:
             busy 2-core machine the two threads slow each other down).
         tail_postings: postings of the latest additions kept unsorted before they are sealed.
         merge_chunk: postings merged per maintenance step (about).
+        descriptor_storage: how float descriptors (SIFT, learned) are stored: "int8" keeps
+            one int8 per dimension and one float32 scale per entry (64 bytes per 64-dim
+            descriptor instead of 256; read back within half a step, ``max|d| / 254``, of
+            the original), "float32" keeps them exactly. Binary descriptors are stored as
+            they are either way, and every entry reads back as it was written, whatever the
+            setting when it is read.
     """
 
     durability: Literal["normal", "full"] = "normal"
@@ -112,12 +118,16 @@ class DatabaseConfig:
     maintenance: Literal["background", "inline"] = "inline"
     tail_postings: int = 1 << 16
     merge_chunk: int = 1 << 17
+    descriptor_storage: Literal["float32", "int8"] = "int8"
 
     def __post_init__(self) -> None:
         if self.durability not in ("normal", "full"):
             raise InputError(f"durability must be 'normal' or 'full', not {self.durability!r}")
         if self.maintenance not in ("background", "inline"):
             raise InputError(f"maintenance must be 'background' or 'inline', not {self.maintenance!r}")
+        if self.descriptor_storage not in ("float32", "int8"):
+            raise InputError(f"descriptor_storage must be 'float32' or 'int8', "
+                             f"not {self.descriptor_storage!r}")
         for name in ("cache_entries", "tail_postings", "merge_chunk"):
             value = getattr(self, name)
             least = 0 if name == "cache_entries" else 1
@@ -554,8 +564,14 @@ class Database:
     ) -> dict[str, np.ndarray]:
         payload: dict[str, np.ndarray] = {"fvec": fvec.nodes}
         if self.config.store_descriptors:
-            payload.update(keypoints=features.keypoints, descriptors=features.descriptors,
-                           octaves=features.octaves, angles=features.angles,
+            payload["keypoints"] = features.keypoints
+            d = features.descriptors
+            if self.config.descriptor_storage == "int8" and d.dtype == np.float32:
+                # quantised here, so that a memory database holds what a file would give back
+                payload["qdescriptors"], payload["qscale"] = _quantised(d)
+            else:
+                payload["descriptors"] = d
+            payload.update(octaves=features.octaves, angles=features.angles,
                            responses=features.responses, sizes=features.sizes)
         payload["image_size"] = np.array(features.image_size, np.int32)
         if points3d is not None:
@@ -942,8 +958,9 @@ def _features(p: dict[str, np.ndarray], what: str) -> tuple[Features, np.ndarray
         size = tuple(int(x) for x in p["image_size"])
         if nodes.ndim != 1 or len(size) != 2:
             raise ValueError("bad direct index or image size")
-        if "descriptors" in p:
-            feats = Features(p["keypoints"], p["descriptors"], p["octaves"], p["angles"],
+        descriptors = _stored_descriptors(p, what)
+        if descriptors is not None:
+            feats = Features(p["keypoints"], descriptors, p["octaves"], p["angles"],
                              p["responses"], p["sizes"], (size[0], size[1]))
         else:
             feats = Features.empty((size[0], size[1]))
@@ -953,6 +970,48 @@ def _features(p: dict[str, np.ndarray], what: str) -> tuple[Features, np.ndarray
     if n and len(feats) and len(feats) != n:
         raise DatabaseError(f"{what}: {len(feats)} features but {n} direct-index nodes")
     return feats, nodes
+
+
+def _quantised(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, D) float32 descriptors as ``q`` (N, D) int8 in -127..127 and ``scale`` (1,) float32
+    with ``q * scale`` within ``scale / 2`` of ``d``: ``scale = max|d| / 127`` over the
+    entry, 0 when every value is 0 (no descriptors included)."""
+    top = float(np.abs(d).max()) if d.size else 0.0
+    if not math.isfinite(top):
+        raise InputError("descriptors: int8 storage needs finite values (NaN or inf found)")
+    scale = np.float32(top / 127)
+    if top > 0 and scale == 0:  # below float32's range: the smallest step there is
+        scale = np.finfo(np.float32).smallest_subnormal
+    if scale == 0:
+        return np.zeros(d.shape, np.int8), np.zeros(1, np.float32)
+    q = np.clip(np.rint(d / np.float64(scale)), -127, 127).astype(np.int8)
+    return q, np.array([scale], np.float32)
+
+
+def _stored_descriptors(p: dict[str, np.ndarray], what: str) -> np.ndarray | None:
+    """A payload's descriptors: as stored ("descriptors"), dequantised to float32 (int8
+    "qdescriptors" times "qscale"), or None when the entry keeps none."""
+    if "qdescriptors" not in p and "qscale" not in p:
+        return p.get("descriptors")
+    q, s = p.get("qdescriptors"), p.get("qscale")
+    if "descriptors" in p or q is None or s is None:
+        found = ", ".join(k for k in ("descriptors", "qdescriptors", "qscale") if k in p)
+        raise DatabaseError(f"{what}: stored descriptors are malformed (found {found}; expected "
+                            "descriptors, or qdescriptors with qscale)")
+    if q.dtype != np.int8 or q.ndim != 2 or q.shape[1] < 1:
+        raise DatabaseError(f"{what}: stored qdescriptors are {q.dtype} of shape {q.shape}, "
+                            "expected int8 (N, D) with D >= 1")
+    if s.dtype != np.float32 or s.shape != (1,):
+        raise DatabaseError(f"{what}: stored qscale is {s.dtype} of shape {s.shape}, expected float32 (1,)")
+    scale = s[0]
+    if not (math.isfinite(scale) and (scale > 0 or (scale == 0 and not q.any()))):
+        raise DatabaseError(f"{what}: stored qscale is {float(scale)!r}, expected a finite positive "
+                            "number (0 only when every qdescriptor is 0)")
+    if q.size and int(q.min()) < -127:
+        raise DatabaseError(f"{what}: stored qdescriptors hold -128, outside -127..127")
+    out = q.astype(np.float32) * scale
+    out.flags.writeable = False  # read-only, as stored arrays are
+    return out
 
 
 def _extras(p: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -25,7 +25,6 @@ level (octave 0); ``sizes`` is the descriptor map's cell, 8 px.
 from __future__ import annotations
 
 import json
-import threading
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -36,6 +35,7 @@ import numpy as np
 
 from ..errors import ConfigError, ModelError
 from ..imageio import to_grey
+from ..onnxsession import shared_session
 from ..types import DescriptorKind, Features
 from .base import ExtractorConfig, check_mask
 
@@ -63,7 +63,7 @@ class XFeatConfig(ExtractorConfig):
             closure needs fewer: 1000 (about as many as ORB's default).
         detection_threshold: a heatmap local maximum above this is a keypoint (XFeat's 0.05).
         threads: onnxruntime's intra-op threads (None: the process default of the shipped
-            networks, :func:`stablecues.semantics.set_default_threads`, 2 unless changed).
+            networks, :func:`stablecues.onnxsession.set_default_threads`, 2 unless changed).
         weights: an ONNX file exported by ``scripts/export_xfeat_onnx.py``; None: the shipped one.
     """
 
@@ -102,16 +102,8 @@ class XFeatNetwork:
         Raises:
             ModelError: the file is missing or not a loadable XFeat graph.
         """
-        from ..semantics.inference import default_threads
-
         p = default_xfeat_path() if path is None else Path(path)
-        n = default_threads() if threads is None else int(threads)
-        key = (str(p.resolve()) if p.exists() else str(p), n)
-        with _LOCK:
-            net = _NETWORKS.get(key)
-            if net is None:
-                net = _NETWORKS[key] = cls(_session(p, n), p)
-        return net
+        return cls(shared_session(p, "XFeat graph", threads), p)
 
     def run(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The dense outputs for a (H, W) float32 grey image, H and W multiples of 32.
@@ -131,28 +123,6 @@ class XFeatNetwork:
         if shapes != ((1, 64, h // _CELL, w // _CELL), (1, 1, h, w), (1, 1, h // _CELL, w // _CELL)):
             raise ModelError(f"{self.path}: XFeat outputs shaped {shapes} for a {w}x{h} image")
         return desc[0], peaks[0, 0], rel[0, 0]
-
-
-_NETWORKS: dict[tuple[str, int], XFeatNetwork] = {}
-_LOCK = threading.Lock()
-
-
-def _session(path: Path, threads: int) -> Any:
-    import onnxruntime as ort
-
-    if not path.is_file():
-        raise ModelError(f"{path}: XFeat weights not found (expected an .onnx file; "
-                         "scripts/export_xfeat_onnx.py makes it)")
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = max(1, threads)
-    opts.inter_op_num_threads = 1
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.log_severity_level = 3
-    try:
-        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:  # onnxruntime raises its own untyped errors
-        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
-        raise ModelError(f"{path}: expected an ONNX XFeat graph, could not load it ({first})") from None
 
 
 def xfeat_metadata(path: str | Path | None = None) -> dict[str, Any]:

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError, InputError, ModelError
+from ..onnxsession import default_threads, open_session, set_default_threads  # noqa: F401 (their old home)
 from ..vocabulary.engine import compiled_kernels, resolve
 from .classes import CLASS_NAMES, NUM_CLASSES
 
@@ -156,8 +157,6 @@ class SegmentationModel:
         Raises:
             ModelError: the file is missing or not a loadable ONNX graph of this network.
         """
-        import onnxruntime as ort
-
         p = default_weights_path(precision) if path is None else Path(path)
         if not p.is_file():
             raise ModelError(f"{p}: segmentation weights not found (expected an .onnx file)")
@@ -168,15 +167,7 @@ class SegmentationModel:
                 meta = json.loads(meta_path.read_text())
             except (OSError, ValueError) as exc:
                 raise ModelError(f"{meta_path}: expected JSON metadata, could not parse it ({exc})") from exc
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, int(_DEFAULT_THREADS[0] if threads is None else threads))
-        opts.inter_op_num_threads = 1
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.log_severity_level = 3
-        try:
-            session = ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # onnxruntime raises its own untyped errors
-            raise ModelError(f"{p}: expected an ONNX segmentation graph, could not load it ({exc})") from exc
+        session = open_session(p, "segmentation graph", threads)
         return cls(session, meta, p, seed=seed)
 
     # -- Monte-Carlo dropout -----------------------------------------------------------------
@@ -254,23 +245,6 @@ class SegmentationModel:
         x = np.ascontiguousarray(x.transpose(2, 0, 1)[None])
         probs = self.sample(x, t)
         return summarize_samples(probs, (int(rgb.shape[0]), int(rgb.shape[1])), uncertainty)
-
-
-_DEFAULT_THREADS = [2]
-
-
-def default_threads() -> int:
-    """The threads of networks loaded without a ``threads`` argument (see :func:`set_default_threads`)."""
-    return _DEFAULT_THREADS[0]
-
-
-def set_default_threads(threads: int) -> None:
-    """The threads of networks loaded from now on without a ``threads`` argument (the
-    detector's own network among them): a worker process of a sweep sets 1, so that two
-    workers on two cores do not each run two threads."""
-    if int(threads) < 1:
-        raise ConfigError(f"threads: expected 1 or more, got {threads}")
-    _DEFAULT_THREADS[0] = int(threads)
 
 
 def check_t(t: int) -> None:

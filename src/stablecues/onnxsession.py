@@ -1,0 +1,73 @@
+"""onnxruntime sessions of the shipped networks (segmentation, XFeat, LighterGlue): one place
+for their thread count and for turning a file that does not load into one clear line.
+
+This module imports nothing of stablecues but its errors, so that any stage may use it.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError, ModelError
+
+__all__ = ["default_threads", "open_session", "set_default_threads", "shared_session"]
+
+_DEFAULT_THREADS = [2]
+_SESSIONS: dict[tuple[str, int], Any] = {}
+_LOCK = threading.Lock()
+
+
+def default_threads() -> int:
+    """The threads of networks loaded without a ``threads`` argument (see :func:`set_default_threads`)."""
+    return _DEFAULT_THREADS[0]
+
+
+def set_default_threads(threads: int) -> None:
+    """The threads of networks loaded from now on without a ``threads`` argument (the
+    detector's own networks among them): a worker process of a sweep sets 1, so that two
+    workers on two cores do not each run two threads."""
+    if int(threads) < 1:
+        raise ConfigError(f"threads: expected 1 or more, got {threads}")
+    _DEFAULT_THREADS[0] = int(threads)
+
+
+def open_session(path: Path, what: str, threads: int | None = None) -> Any:
+    """An onnxruntime CPU session of the ONNX file ``path``.
+
+    Args:
+        path: the file.
+        what: what the file should hold, for messages ("segmentation graph", "XFeat graph").
+        threads: intra-op threads (None: :func:`default_threads`).
+
+    Raises:
+        ModelError: the file is missing or onnxruntime cannot load it (one line naming it).
+    """
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise ModelError(f"{path}: {what} not found (expected an .onnx file)")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = max(1, int(default_threads() if threads is None else threads))
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own untyped errors
+        text = str(exc).strip()
+        first = text.splitlines()[0][:160] if text else type(exc).__name__
+        raise ModelError(f"{path}: expected an ONNX {what}, could not load it ({first})") from None
+
+
+def shared_session(path: Path, what: str, threads: int | None = None) -> Any:
+    """:func:`open_session`, opened once per process for each file and thread count (sessions
+    are safe to run from several threads)."""
+    n = default_threads() if threads is None else int(threads)
+    key = (str(path.resolve()) if path.exists() else str(path), n)
+    with _LOCK:
+        session = _SESSIONS.get(key)
+        if session is None:
+            session = _SESSIONS[key] = open_session(path, what, n)
+    return session
