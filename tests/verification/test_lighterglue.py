@@ -141,7 +141,7 @@ def test_shipped_file_and_its_provenance() -> None:
     assert meta["file"] == "xfeat_lighterglue.onnx" and meta["opset"] >= 17
     assert meta["settings"]["width_confidence"] == -1 and meta["settings"]["depth_confidence"] == -1
     assert (REPO / "src" / "stablecues" / "data" / "xfeat_lighterglue.onnx").stat().st_size < 20e6
-    assert LighterGlueNetwork.load(None, 1).session is LighterGlueNetwork.load(None, 1).session  # one per process
+    assert LighterGlueNetwork.load(None, 1).session is LighterGlueNetwork.load(None, 1).session  # shared
 
 
 def test_empty_features_and_bad_inputs() -> None:
