@@ -275,28 +275,48 @@ def test_monocular_stream_triangulates_and_resumes(tmp_path: Path) -> None:
 
 
 def test_the_accepted_loop_walks_to_the_nearest_viewpoint() -> None:
-    """Corridor query 64 (frame 175): the entry with the most inliers is reference 68 (32
-    inliers), four frames along the corridor, where the scene looks 0.33 (log) smaller; the walk
-    steps to reference 66 (inside the ground truth's 62-66), whose scale is nearer the query's,
-    and the loop keeps the support of 32 inliers."""
+    """Corridor query 65 (frame 176): without the walk the accepted loop is reference 68 (30
+    inliers), outside the ground truth's 63-67, where the scene looks 0.20 (log) smaller; the walk
+    steps to reference 67, inside the ground truth, whose scale is nearer the query's, and the loop
+    keeps the support of 30 inliers.
+
+    Query 64 (frame 175), used before, hangs on a retrieval tie (references 68 and 64 within 0.0002
+    of each other) that the int8 segmentation network breaks differently by CPU: onnxruntime's
+    u8s8 kernels saturate on x86 CPUs with AVX2 but without VNNI. Query 65 gives the same loop, the
+    same inliers and the same scale changes with either kernel; the properties of the walk are
+    asserted, the frames only as the ground truth bounds them."""
     from conftest import shared_path
     from stablecues.datasets import open_dataset
 
-    ds = open_dataset(shared_path("corridor"), format="vprbench")
+    folder = shared_path("corridor")
+    ds = open_dataset(folder, format="vprbench")
+    truth = {int(row[0]): {int(r) for r in row[1]} for row in np.load(folder / "ground_truth_new.npy",
+                                                                        allow_pickle=True)}[65]
+    assert truth == {63, 64, 65, 66, 67}
     decisions = {}
     for steps in (0, 3):
-        det = LoopDetector(preset("default", {"query": {"viewpoint_steps": steps}, "similarity": False}))
-        for i in range(175):
+        cfg = preset("default", {"query": {"viewpoint_steps": steps}, "similarity": False})
+        det = LoopDetector(cfg)
+        for i in range(176):
             det.store(ds[i])
-        decisions[steps] = det.process(ds[175])
+        decisions[steps] = det.process(ds[176])
+    q = cfg.query
     still, walked = decisions[0], decisions[3]
     assert still.accepted and walked.accepted
-    assert still.candidate_frame == 68 and walked.candidate_frame == 66
     assert still.verification is not None and walked.verification is not None
+    # without the walk: a near miss seen from further along the corridor, far enough off to walk
+    assert still.candidate_frame not in truth and abs(still.candidate_frame - 65) <= 3
+    assert abs(still.verification.scale_change) > q.viewpoint_scale
+    # the walk: at most viewpoint_steps entries along the map, into the ground truth, to a nearer scale
+    assert walked.candidate_frame in truth and walked.candidate_frame != still.candidate_frame
+    assert abs(walked.candidate_frame - still.candidate_frame) <= q.viewpoint_steps
     assert abs(walked.verification.scale_change) < abs(still.verification.scale_change) - 0.05
+    # an accepted step with fewer inliers than the place's support, which the loop keeps
+    assert walked.verification.n_inliers >= q.viewpoint_inliers * still.verification.n_inliers
     assert walked.verification.n_inliers < still.verification.n_inliers
-    assert int(walked.confidence) == still.verification.n_inliers  # the place's support is kept
-    assert 66 in [c[0] for c in walked.extras()["checked"]]
+    assert int(walked.confidence) == still.verification.n_inliers
+    # as measured with either kernel: 68 (30 inliers, scale change -0.204) -> 67 (29, -0.073)
+    assert walked.candidate_frame in [c[0] for c in walked.extras()["checked"]]
 
 
 def test_removed_entries_are_never_verified(frames: list[Frame]) -> None:

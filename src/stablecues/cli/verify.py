@@ -45,8 +45,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--preset", default="default",
                    help="settings preset: default, paper, dloop, pnp, learned (for learned features: "
                         "mutual nearest neighbours, a loose ratio)")
-    p.add_argument("--matcher", choices=("ratio", "mnn"),
-                   help="ratio: Lowe's ratio test (DBoW2); mnn: mutual nearest neighbours, brute force")
+    p.add_argument("--matcher", choices=("ratio", "mnn", "lighterglue"),
+                   help="ratio: Lowe's ratio test (DBoW2); mnn: mutual nearest neighbours, brute force; "
+                        "lighterglue: XFeat's learned matcher (with --features xfeat)")
     p.add_argument("--tolerance", choices=("noise", "relative"), help="triangle side tolerance")
     p.add_argument("--triangles", type=int, help="number of triangles T")
     p.add_argument("--acceptance", choices=("all", "majority", "at_least"), help="triangle acceptance rule")

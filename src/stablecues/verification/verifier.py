@@ -92,6 +92,7 @@ class Verifier:
         self._triangle_config = config.triangle_config()
         self._similar_config = dataclasses.replace(self._triangle_config, tolerance="similar")
         self._pnp_config = config.pnp_config()
+        self._lighterglue: Any = None  # the LighterGlue matcher, opened on first use
 
     @classmethod
     def from_calibration(cls, calib: Calibration, config: VerificationConfig | None = None) -> Verifier:
@@ -164,17 +165,7 @@ class Verifier:
         """
         cfg = self.config
         t0 = time.perf_counter()
-        mnn = cfg.matcher == "mnn"
-        use_fvec = not mnn and query.fvec is not None and candidate.fvec is not None
-        matches = match_features(
-            query.features,
-            candidate.features,
-            query.fvec if use_fvec else None,
-            candidate.fvec if use_fvec else None,
-            ratio=cfg.ratio,
-            max_distance=cfg.max_distance,
-            cross_check=cfg.cross_check or mnn,
-        )
+        matches = self._match(query, candidate)
         static = 0
         if cfg.static_px is not None and len(matches):
             moved = np.linalg.norm(query.features.keypoints[matches.query].astype(np.float64)
@@ -201,6 +192,27 @@ class Verifier:
             method = Method.SIMILAR_TRIANGLES  # a monocular side: its scale is unknown
         ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, cfg.matcher)
         return self._checks[method](ctx)
+
+    def _match(self, query: View, candidate: View) -> Matches:
+        """The correspondences of the configured matcher (``VerificationConfig.matcher``)."""
+        cfg = self.config
+        if cfg.matcher == "lighterglue":
+            if self._lighterglue is None:
+                from .lighterglue import LighterGlueMatcher
+
+                self._lighterglue = LighterGlueMatcher()
+            return self._lighterglue.match(query.features, candidate.features, cfg.match_confidence)
+        mnn = cfg.matcher == "mnn"
+        use_fvec = not mnn and query.fvec is not None and candidate.fvec is not None
+        return match_features(
+            query.features,
+            candidate.features,
+            query.fvec if use_fvec else None,
+            candidate.fvec if use_fvec else None,
+            ratio=cfg.ratio,
+            max_distance=cfg.max_distance,
+            cross_check=cfg.cross_check or mnn,
+        )
 
     @property
     def _checks(self) -> dict[Method, Callable[[_Context], Verification]]:

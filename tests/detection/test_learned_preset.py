@@ -1,0 +1,44 @@
+"""The ``learned`` preset end to end on a short real day -> night sequence (Gardens Point)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from conftest import shared_path
+from stablecues.detection import LoopDetector, describe_preset, preset
+from stablecues.errors import ConfigError
+from stablecues.imageio import read_image
+from stablecues.types import Frame
+
+
+def test_learned_preset_settings() -> None:
+    cfg = preset("learned")
+    assert cfg.features.name == "xfeat" and cfg.verification is not None
+    assert cfg.verification.matcher == "mnn"
+    assert "XFeat" in describe_preset("learned")
+    with pytest.raises(ConfigError, match="lighterglue"):
+        preset("default", {"verification": {"matcher": "lighterglue"}})  # ORB features
+    assert preset("learned", {"verification": {"matcher": "lighterglue"}}).verification.matcher == "lighterglue"
+
+
+def test_learned_preset_closes_day_night_loops_on_real_frames() -> None:
+    """Places 0-19 by day, then the same places by night: ORB's default accepts no loop there
+    (bench_learned.py); the learned preset accepts loops, all of them within 8 places of the
+    true one, and says which matcher and verifier decided."""
+    gp = shared_path("gardens_point_dev")
+    names = [gp / "day_right" / f"Image{k:03d}.jpg" for k in range(20)]
+    names += [gp / "night_right" / f"Image{k:03d}.jpg" for k in range(20)]
+    det = LoopDetector(preset("learned"))
+    accepted = []
+    for i, path in enumerate(names):
+        d = det.process(Frame(index=i, name=path.name, timestamp=math.nan, image=read_image(path, "bgr")))
+        assert d.n_features == 1000
+        if d.accepted:
+            assert d.verification is not None and d.verification.matcher == "mnn"
+            assert d.extras()["verifier"] == "fundamental" and d.extras()["matcher"] == "mnn"
+            accepted.append((i, d.candidate_frame))
+    det.close()
+    assert len(accepted) >= 5, accepted
+    assert all(i >= 20 and abs((i - 20) - c) <= 8 for i, c in accepted), accepted
