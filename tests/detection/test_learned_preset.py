@@ -20,7 +20,8 @@ def test_learned_preset_settings() -> None:
     assert "XFeat" in describe_preset("learned")
     with pytest.raises(ConfigError, match="lighterglue"):
         preset("default", {"verification": {"matcher": "lighterglue"}})  # ORB features
-    assert preset("learned", {"verification": {"matcher": "lighterglue"}}).verification.matcher == "lighterglue"
+    glued = preset("learned", {"verification": {"matcher": "lighterglue"}}).verification
+    assert glued is not None and glued.matcher == "lighterglue"
 
 
 def test_learned_preset_closes_day_night_loops_on_real_frames() -> None:
