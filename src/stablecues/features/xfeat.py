@@ -9,7 +9,10 @@ needs onnxruntime only, not torch.
 What :meth:`XFeatExtractor.extract` does, as XFeat's ``detectAndCompute``:
 
 1. the image, grey, is resized (bilinear) to the nearest multiples of 32 below its size (XFeat's
-   requirement: 640x360 is run at 640x352); keypoints are scaled back to the input's pixels;
+   requirement: 640x360 is run at 640x352), after enlarging an image whose longer side is under
+   ``min_size`` pixels to that size (a 160x120 frame of the corridor set is run at 480x352: at
+   its own size the descriptor map is 20x12 cells and the keypoints sit on the same pixels in
+   every frame); keypoints are scaled back to the input's pixels;
 2. the network (onnxruntime) gives a dense descriptor map at 1/8 resolution, a keypoint heatmap
    at full resolution already reduced to its 5x5 local maxima, and a reliability map;
 3. local maxima above ``detection_threshold`` are keypoints, scored by heatmap times (bilinearly
@@ -62,6 +65,8 @@ class XFeatConfig(ExtractorConfig):
         n_features: keypoints kept at most (the best scored); XFeat's own default is 4096, loop
             closure needs fewer: 1000 (about as many as ORB's default).
         detection_threshold: a heatmap local maximum above this is a keypoint (XFeat's 0.05).
+        min_size: an image whose longer side is shorter is enlarged (bilinear) to this size
+            first; 0: never.
         threads: onnxruntime's intra-op threads (None: the process default of the shipped
             networks, :func:`stablecues.onnxsession.set_default_threads`, 2 unless changed).
         weights: an ONNX file exported by ``scripts/export_xfeat_onnx.py``; None: the shipped one.
@@ -70,6 +75,7 @@ class XFeatConfig(ExtractorConfig):
     name: str = "xfeat"
     n_features: int = 1000
     detection_threshold: float = 0.05
+    min_size: int = 480
     threads: int | None = None
     weights: str | None = None
 
@@ -79,6 +85,9 @@ class XFeatConfig(ExtractorConfig):
             raise ConfigError(f"xfeat: n_features must be an integer >= 0, got {self.n_features!r}")
         if not 0.0 <= float(self.detection_threshold) < 1.0:
             raise ConfigError(f"xfeat: detection_threshold must be in [0, 1), got {self.detection_threshold}")
+        size = self.min_size
+        if isinstance(size, bool) or not isinstance(size, int) or not 0 <= size <= 4096:
+            raise ConfigError(f"xfeat: min_size must be an integer in 0..4096, got {self.min_size!r}")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
             raise ConfigError(f"xfeat: threads must be >= 1 or None, got {self.threads!r}")
 
@@ -237,7 +246,11 @@ class XFeatExtractor:
         h, w = grey.shape
         size = (int(w), int(h))
         mask = check_mask(mask, grey.shape)
-        h32, w32 = (h // 32) * 32, (w // 32) * 32
+        grow = self.config.min_size / max(h, w, 1)
+        if grow > 1.0 and min(h, w) >= 32:
+            h32, w32 = int(h * grow) // 32 * 32, int(w * grow) // 32 * 32
+        else:
+            h32, w32 = (h // 32) * 32, (w // 32) * 32
         if self.config.n_features == 0 or h32 == 0 or w32 == 0:
             return Features.empty(size, XFEAT_DESCRIPTOR)
         x: np.ndarray = grey.astype(np.float32)
