@@ -45,6 +45,7 @@ Run::
     python bench/bench_learned.py --presets fast --config 'xfeat-fast=fast:{"features":{"name":"xfeat"}}'
     python bench/bench_learned.py --quick 20 --sections gardens     # first 20 query places only
     python bench/bench_learned.py --sections extract,storage,bruteforce   # ~1 + 2 + 10 minutes
+    python bench/bench_learned.py --sections speed                  # presets, stage by stage, 1 thread
 
 Prints tables and writes ``bench/results/learned.json`` (``--quick``: ``learned_quick.json``),
 merged into the file already there: a run replaces the figures of the sets and configurations it
@@ -82,7 +83,7 @@ from stablecues.evaluation import evaluate_detections, evaluate_run, load_run
 from stablecues.evaluation.funnel import loss_funnel
 from stablecues.features import XFeatConfig, XFeatExtractor, make_extractor
 from stablecues.groundtruth import GroundTruth, load_ground_truth
-from stablecues.types import Features
+from stablecues.types import Features, Frame
 from stablecues.verification.lighterglue import LighterGlueMatcher
 from stablecues.verification.matching import match_features
 
@@ -790,9 +791,58 @@ def bench_bruteforce(configs: Configs, work: Path, network: bool, quick: int | N
     return out
 
 
+
+SPEED_PLACES = 40  # places of day_right, then the same places of night_right, for `speed`
+SPEED_PRESETS = ("default", "fast", "learned")
+
+
+def bench_speed(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """Time per 640x360 frame of whole presets, stage by stage, on ONE thread (onnxruntime's
+    networks, OpenCV and NumPy's BLAS): day_right places 0..39, then night_right 0..39, through
+    ``LoopDetector.process`` one frame at a time; the first 5 frames (loading, compiling) left out.
+    The presets of ``--presets``/``--config`` are timed beside default, fast and learned."""
+    from stablecues.onnxsession import default_threads, set_default_threads
+
+    places = SPEED_PLACES if not quick else min(quick, SPEED_PLACES)
+    images = [gardens_image(t, k) for t in ("day_right", "night_right") for k in range(places)]
+    specs: Configs = {name: (name, {}) for name in SPEED_PRESETS}
+    specs.update(configs)
+    out: dict[str, Any] = {"load_before": list(os.getloadavg()), "frames": len(images),
+                           "sequence": f"day_right 0..{places - 1} then night_right 0..{places - 1}"}
+    threads = cv2.getNumThreads(), default_threads()
+    cv2.setNumThreads(1)
+    set_default_threads(1)
+    try:
+        with blas_threads(1) as blas:
+            out["threads"] = f"onnxruntime 1, OpenCV 1, {blas}"
+            for label, (name, overrides) in specs.items():
+                cfg = preset(name, {**overrides, "similarity": False})
+                if not network and needs_segmentation(cfg):
+                    out[label] = {"skipped": "the segmentation network's weights are absent"}
+                    continue
+                det = LoopDetector(cfg)
+                stages: dict[str, list[float]] = {}
+                for i, img in enumerate(images):
+                    d = det.process(Frame(index=i, name="", timestamp=math.nan, image=img))
+                    if i >= 5:
+                        for k, v in d.timings.items():
+                            stages.setdefault(k, []).append(float(v))
+                det.close()
+                n = len(images) - 5
+                out[label] = {k: round(float(np.sum(v)) / n, 2) for k, v in stages.items()}
+                out[label]["total_median"] = round(float(np.median(stages["total"])), 2)
+                shown = " ".join(f"{k} {v}" for k, v in out[label].items())
+                print(f"  speed {label:24s} {shown}", flush=True)
+    finally:
+        cv2.setNumThreads(threads[0])
+        set_default_threads(threads[1])
+    out["load_after"] = list(os.getloadavg())
+    return out
+
 SECTIONS = {"gardens": bench_gardens, "revisits": bench_revisits, "corridor": bench_corridor}
 #: sections run only when named: each takes minutes
-EXTRA_SECTIONS = {"extract": bench_extract, "storage": bench_storage, "bruteforce": bench_bruteforce}
+EXTRA_SECTIONS = {"extract": bench_extract, "storage": bench_storage, "bruteforce": bench_bruteforce,
+                  "speed": bench_speed}
 
 
 def merge(old: dict[str, Any], new: dict[str, Any], depth: int) -> dict[str, Any]:

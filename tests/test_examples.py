@@ -96,3 +96,18 @@ def test_examples_report_bad_input_in_one_line(tmp_path: Path, capsys: pytest.Ca
     assert code == 1 and err.strip() == f"error: calibration file {tmp_path / 'none.yaml'} does not exist"
     with pytest.raises(SystemExit, match="cannot read image"):
         example("stereo_euroc").main(["--calib", "fr2", f"{tmp_path / 'l.png'},{tmp_path / 'r.png'}"])
+
+
+def test_learned_example_closes_loops_by_night(capsys: pytest.CaptureFixture[str]) -> None:
+    """Gardens Point places 0-19 by day, then by night: the learned preset accepts loops, each at
+    most 8 places from the true one; ORB's default accepts none (bench_learned.py)."""
+    gp = shared_path("gardens_point_dev")
+    args = [str(gp / "day_right"), str(gp / "night_right"), "--places", "20"]
+    code, lines, _ = run("learned_day_night", args, capsys)
+    assert code == 0
+    offs = [int(m[1]) for line in lines if (m := re.search(r", (\d+) places off", line))]
+    assert len(offs) >= 5 and max(offs) <= 8, lines
+    assert all("matcher mnn, verifier fundamental" in line for line in lines if line.startswith("loop:"))
+    assert lines[-1].startswith("40 frames, ") and "(learned)" in lines[-1]
+    code, lines, err = run("learned_day_night", [str(gp / "nowhere")], capsys)
+    assert code == 1 and "error:" in err and "nowhere" in err

@@ -159,21 +159,26 @@ def _grid_coords(
 
 
 def _taps(values: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
-    """``values[..., iy, ix]`` with zero outside the map: (C, P) for (C, h, w) values."""
-    _, h, w = values.shape
+    """``values[iy, ix]`` with zero outside the map: (P, C) for (h, w, C) values."""
+    h, w, _ = values.shape
     inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
-    out = values[:, np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)]
-    return out * inside
+    out = values[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)]
+    return out * inside[:, None]
+
+
+def _channels_last(values: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(values, 0, -1), np.float32)
 
 
 def sample_bilinear(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Bilinear samples of a (C, h, w) map at image positions ``xy`` (P, 2): (P, C) float32."""
     x, y = _grid_coords(xy.astype(np.float64), size, (values.shape[2], values.shape[1]))
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    out = (_taps(values, y0, x0) * ((1 - fx) * (1 - fy)) + _taps(values, y0, x0 + 1) * (fx * (1 - fy))
-           + _taps(values, y0 + 1, x0) * ((1 - fx) * fy) + _taps(values, y0 + 1, x0 + 1) * (fx * fy))
-    return out.T.astype(np.float32)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    hwc = _channels_last(values)
+    out = (_taps(hwc, y0, x0) * ((1 - fx) * (1 - fy)) + _taps(hwc, y0, x0 + 1) * (fx * (1 - fy))
+           + _taps(hwc, y0 + 1, x0) * ((1 - fx) * fy) + _taps(hwc, y0 + 1, x0 + 1) * (fx * fy))
+    return out.astype(np.float32)
 
 
 def _cubic_weights(t: np.ndarray) -> np.ndarray:
@@ -194,14 +199,16 @@ def sample_bicubic(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) ->
     (torch's ``grid_sample(mode="bicubic", padding_mode="zeros")``): (P, C) float32."""
     x, y = _grid_coords(xy.astype(np.float64), size, (values.shape[2], values.shape[1]))
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    wx, wy = _cubic_weights(x - x0), _cubic_weights(y - y0)
-    out = np.zeros((values.shape[0], xy.shape[0]), np.float64)
+    wx = _cubic_weights(x - x0).astype(np.float32)[:, :, None]
+    wy = _cubic_weights(y - y0).astype(np.float32)[:, :, None]
+    hwc = _channels_last(values)
+    out = np.zeros((xy.shape[0], hwc.shape[2]), np.float32)
     for j in range(4):
         row = np.zeros_like(out)
         for i in range(4):
-            row += _taps(values, y0 + j - 1, x0 + i - 1) * wx[i]
+            row += _taps(hwc, y0 + j - 1, x0 + i - 1) * wx[i]
         out += row * wy[j]
-    return out.T.astype(np.float32)
+    return out
 
 
 class XFeatExtractor:
