@@ -65,3 +65,10 @@ def test_extractors_the_vocabulary_cannot_take_are_refused_in_one_line(
     out = tmp_path / "v.scv"
     assert main(["vocab", "train", str(tmp_path / "imgs"), "--out", str(out), "--features", "surf"]) == 1
     assert "unknown feature extractor 'surf'; known: orb, sift" in capsys.readouterr().err
+
+
+def test_info_of_the_shipped_xfeat_vocabulary(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["vocab", "info", "default:xfeat"]) == 0
+    out = capsys.readouterr().out
+    assert "64-dim float32" in out and "10000" in out and "make_xfeat_vocabulary.py" in out
+    assert "gardens" not in out.lower()  # trained on development data only

@@ -253,6 +253,11 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
     "learned": (None, "learned", {"query": _MEASURED_QUERY, "features": {"name": "xfeat"}},
                 "pretrained XFeat features (ONNX) with their own vocabulary, matched by mutual nearest "
                 "neighbours; the default's query; for changing light (day/night)"),
+    "learned-glue": (None, "learned",
+                     {"query": {**_MEASURED_QUERY, "islands_verified": 2, "refine": 0, "viewpoint_steps": 0},
+                      "features": {"name": "xfeat"}, "verification": {"matcher": "lighterglue"}},
+                     "learned, verified by LighterGlue (XFeat's LightGlue, ONNX): more loops by night, "
+                     "about 0.2 s a verified pair on one core; the 2 best islands, no refine or walk"),
     "paper": ("paper", "paper", {},
               "the paper: hard static-class mask + triangle check (fixed 2 %, all of 3)"),
     "bow": (None, "dloop", {}, "DBoW2/DLoopDetector baseline: no mask, fundamental-matrix check"),
