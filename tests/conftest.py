@@ -29,6 +29,18 @@ def shared_data() -> Path:
     return shared_path()
 
 
+def textured(h: int = 240, w: int = 320, seed: int = 0, blur: bool = True) -> np.ndarray:
+    """A grey (h, w) uint8 image of 150 random filled rectangles on mid grey (corners and blobs
+    for any extractor), lightly blurred unless ``blur`` is False."""
+    rng = np.random.default_rng(seed)
+    img = np.full((h, w), 128, np.uint8)
+    for _ in range(150):
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        cv2.rectangle(img, (x, y), (x + int(rng.integers(4, 30)), y + int(rng.integers(4, 30))),
+                      int(rng.integers(0, 256)), -1)
+    return cv2.GaussianBlur(img, (3, 3), 0) if blur else img
+
+
 # Fixtures of the database tests: descriptor sets of fake images and a small vocabulary.
 @pytest.fixture(scope="session")
 def images() -> list[np.ndarray]:

@@ -6,13 +6,16 @@ This module imports nothing of stablecues but its errors, so that any stage may 
 
 from __future__ import annotations
 
+import json
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError, ModelError
 
-__all__ = ["default_threads", "open_session", "set_default_threads", "shared_session"]
+__all__ = ["check_graph", "default_threads", "graph_metadata", "open_session", "set_default_threads",
+           "shared_session"]
 
 _DEFAULT_THREADS = [2]
 _SESSIONS: dict[tuple[str, int], Any] = {}
@@ -75,3 +78,22 @@ def shared_session(path: Path, what: str, threads: int | None = None) -> Any:
         if session is None:
             session = _SESSIONS[key] = open_session(path, what, n)
     return session
+
+
+def check_graph(session: Any, path: Path, what: str, inputs: Sequence[str], outputs: Sequence[str]) -> None:
+    """Raise a one-line :class:`ModelError` unless the session's graph has these input and output
+    names, in order (a loadable ONNX file of another network)."""
+    have_in = [i.name for i in session.get_inputs()]
+    have_out = [o.name for o in session.get_outputs()]
+    if have_in != list(inputs) or have_out != list(outputs):
+        raise ModelError(f"{path}: expected {what} (inputs {', '.join(inputs)}; outputs "
+                         f"{', '.join(outputs)}), found inputs {have_in} and outputs {have_out}")
+
+
+def graph_metadata(onnx_path: Path) -> dict[str, Any]:
+    """The JSON an export script wrote beside an ONNX file (same stem; {} when there is none)."""
+    try:
+        meta = json.loads(onnx_path.with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return meta if isinstance(meta, dict) else {}

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import textured as _textured
 from stablecues.errors import ConfigError, InputError
 from stablecues.features import OrbConfig, OrbExtractor, distribute_quadtree
 from stablecues.features.orb import level_quotas, select_keypoints
@@ -13,13 +14,7 @@ from stablecues.types import ORB_DESCRIPTOR, DescriptorKind
 
 
 def textured(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.full((h, w), 128, np.uint8)
-    for _ in range(150):
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        cv2.rectangle(img, (x, y), (x + int(rng.integers(4, 30)), y + int(rng.integers(4, 30))),
-                      int(rng.integers(0, 256)), -1)
-    return img
+    return _textured(h, w, seed, blur=False)
 
 
 def test_output_shapes_and_dtypes() -> None:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import REPO, shared_path
+from conftest import REPO, shared_path, textured
 from stablecues.errors import ConfigError, InputError, ModelError
 from stablecues.features import XFeatConfig, XFeatExtractor, make_extractor
 from stablecues.features.xfeat import XFEAT_DESCRIPTOR, XFeatNetwork, sample_bicubic, sample_bilinear
@@ -21,16 +21,6 @@ DENSE_TOL = 1e-4
 #: frame whose height is not a multiple of 32 is resized by OpenCV here, by torch there: up to 1e-4)
 SPARSE_TOL = 1e-4
 SCORE_TOL = 5e-4
-
-
-def textured(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = np.full((h, w), 128, np.uint8)
-    for _ in range(150):
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        cv2.rectangle(img, (x, y), (x + int(rng.integers(4, 30)), y + int(rng.integers(4, 30))),
-                      int(rng.integers(0, 256)), -1)
-    return cv2.GaussianBlur(img, (3, 3), 0)
 
 
 def real_frames() -> list[np.ndarray]:

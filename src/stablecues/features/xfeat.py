@@ -27,7 +27,6 @@ level (octave 0); ``sizes`` is the descriptor map's cell, 8 px.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -38,7 +37,7 @@ import numpy as np
 
 from ..errors import ConfigError, ModelError
 from ..imageio import to_grey
-from ..onnxsession import shared_session
+from ..onnxsession import check_graph, graph_metadata, shared_session
 from ..types import DescriptorKind, Features
 from .base import ExtractorConfig, check_mask
 
@@ -98,11 +97,7 @@ class XFeatNetwork:
     def __init__(self, session: Any, path: Path) -> None:
         self.session = session
         self.path = path
-        inputs = [i.name for i in session.get_inputs()]
-        outputs = [o.name for o in session.get_outputs()]
-        if inputs != ["image"] or tuple(outputs) != _OUTPUTS:
-            raise ModelError(f"{path}: expected an XFeat graph (input image; outputs "
-                             f"{', '.join(_OUTPUTS)}), found inputs {inputs} and outputs {outputs}")
+        check_graph(session, path, "an XFeat graph", ["image"], _OUTPUTS)
 
     @classmethod
     def load(cls, path: str | Path | None = None, threads: int | None = None) -> XFeatNetwork:
@@ -136,12 +131,7 @@ class XFeatNetwork:
 
 def xfeat_metadata(path: str | Path | None = None) -> dict[str, Any]:
     """The JSON written beside the ONNX file by the export script ({} when there is none)."""
-    p = (default_xfeat_path() if path is None else Path(path)).with_suffix(".json")
-    try:
-        meta = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return {}
-    return meta if isinstance(meta, dict) else {}
+    return graph_metadata(default_xfeat_path() if path is None else Path(path))
 
 
 # ------------------------------------------------------------------------ sparse sampling

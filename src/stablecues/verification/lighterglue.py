@@ -32,7 +32,6 @@ XFeat features of real frames.
 
 from __future__ import annotations
 
-import json
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, InputError, ModelError
-from ..onnxsession import shared_session
+from ..onnxsession import check_graph, graph_metadata, shared_session
 from ..types import Features
 from .matching import Matches
 
@@ -61,12 +60,7 @@ def default_lighterglue_path() -> Path:
 
 def lighterglue_metadata(path: str | Path | None = None) -> dict[str, Any]:
     """The JSON written beside the ONNX file by the export script ({} when there is none)."""
-    p = (default_lighterglue_path() if path is None else Path(path)).with_suffix(".json")
-    try:
-        meta = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return {}
-    return meta if isinstance(meta, dict) else {}
+    return graph_metadata(default_lighterglue_path() if path is None else Path(path))
 
 
 class LighterGlueNetwork:
@@ -75,11 +69,7 @@ class LighterGlueNetwork:
     def __init__(self, session: Any, path: Path) -> None:
         self.session = session
         self.path = path
-        inputs = [i.name for i in session.get_inputs()]
-        outputs = [o.name for o in session.get_outputs()]
-        if tuple(inputs) != LIGHTERGLUE_INPUTS or tuple(outputs) != _OUTPUTS:
-            raise ModelError(f"{path}: expected a LighterGlue graph (inputs {', '.join(LIGHTERGLUE_INPUTS)}; "
-                             f"output log_assignment), found inputs {inputs} and outputs {outputs}")
+        check_graph(session, path, "a LighterGlue graph", LIGHTERGLUE_INPUTS, _OUTPUTS)
 
     @classmethod
     def load(cls, path: str | Path | None = None, threads: int | None = None) -> LighterGlueNetwork:
