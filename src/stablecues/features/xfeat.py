@@ -22,7 +22,8 @@ What :meth:`XFeatExtractor.extract` does, as XFeat's ``detectAndCompute``:
 
 ``tests/features/test_xfeat.py`` checks this against the torch original on real frames.
 Descriptors are (N, 64) float32 unit vectors; keypoints have no orientation (angle -1) and one
-level (octave 0); ``sizes`` is the descriptor map's cell, 8 px.
+level (octave 0); ``sizes`` is the descriptor map's cell, 8 px of the network's input, in the
+input image's pixels.
 """
 
 from __future__ import annotations
@@ -282,6 +283,6 @@ class XFeatExtractor:
             octaves=np.zeros(n, np.int16),
             angles=np.full(n, -1.0, np.float32),
             responses=scores.astype(np.float32),
-            sizes=np.full(n, float(_CELL), np.float32),
+            sizes=np.full(n, _CELL * size[0] / w32, np.float32),  # a cell, in the input's pixels
             image_size=size,
         )
