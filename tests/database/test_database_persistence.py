@@ -129,16 +129,21 @@ def test_orphans_and_stale_files_are_deleted_and_nothing_else(
     with Database(voc, path) as db:
         assert answers(db, voc, images) == before
     assert not (d / "seg-99999999.sci").exists() and (d / "notes.txt").read_text() == "mine"
-    # the run command deletes a map's SQLite files only: a new map at that path ignores the
-    # old index files (another database's id) and deletes them
+    # without its SQLite files the map's index files are refused, never taken over and deleted
+    # by a new map (issue 34: a 0-byte or deleted map.sqlite destroyed them); the run command
+    # removes a map it starts over with remove_database, files and index alike
     for suffix in ("", "-wal", "-shm"):
         Path(str(path) + suffix).unlink(missing_ok=True)
     stale = {f.name for f in _segment_files(path)}
+    with pytest.raises(DatabaseError, match="refusing to start a new map"):
+        Database(voc, path)
+    assert stale == {f.name for f in _segment_files(path)}
+    remove_database(path)
     with Database(voc, path) as db:
         fill(db, voc, images[:5])
         assert db.query(voc.transform(images[3])[0], 1)[0].entry_id == 3
         db.flush()
-    assert not stale & {f.name for f in _segment_files(path)}
+    assert _segment_files(path)  # the new map's own
     remove_database(path)
     assert not path.exists() and (d / "notes.txt").exists() and not _segment_files(path)
 

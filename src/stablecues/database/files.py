@@ -48,6 +48,16 @@ def index_dir(db_path: Path) -> Path:
     return Path(str(db_path) + INDEX_SUFFIX)
 
 
+def stored_segments(db_path: Path) -> list[str]:
+    """The segment files in a database file's index directory (names, sorted; [] without one)."""
+    d = index_dir(db_path)
+    if not d.is_dir() or d.is_symlink():
+        return []
+    with contextlib.suppress(OSError):
+        return sorted(f.name for f in d.iterdir() if _SEGMENT_NAME.fullmatch(f.name))
+    return []
+
+
 def remove_database(db_path: str | Path) -> None:
     """Delete a database file, its SQLite side files and its index directory (only the files
     stablecues writes there)."""

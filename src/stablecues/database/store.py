@@ -55,7 +55,15 @@ from ..errors import DatabaseError, InputError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
 from .entrylog import INSERT_ENTRY, EntryWriter, Row, log_path, replay, row_values
-from .files import IndexFiles, LogCheckpointer, Manifest, WriterLock, index_dir, open_segments
+from .files import (
+    IndexFiles,
+    LogCheckpointer,
+    Manifest,
+    WriterLock,
+    index_dir,
+    open_segments,
+    stored_segments,
+)
 from .inverted import InvertedIndex
 from .packing import pack_arrays, pack_buffer, unpack_arrays
 from .schema import (
@@ -135,6 +143,31 @@ class DatabaseConfig:
                 raise InputError(f"{name} must be a positive integer, not {value!r}")
 
 
+def _refuse_a_new_map_over_old_files(path: Path) -> None:
+    """A missing or empty (0-byte) SQLite file would start a new, empty map, and a new map
+    deletes the segment files its manifest does not name: refuse while a map's index segments
+    or entry log lie beside it (a truncated or deleted ``map.sqlite`` must not take them along).
+
+    Raises:
+        DatabaseError: naming what was found and what to do.
+    """
+    try:
+        fresh = not path.exists() or (path.is_file() and path.stat().st_size == 0)
+        log = log_path(path)
+        logged = log.is_file() and log.stat().st_size > 0
+    except OSError:
+        return  # _connect names what is wrong with the path
+    if not fresh:
+        return
+    segments = stored_segments(path)
+    if segments or logged:
+        found = (f"{len(segments)} index segment file(s) in {index_dir(path)}" if segments else "")
+        found += (" and " if segments and logged else "") + (f"the entry log {log}" if logged else "")
+        state = "missing" if not path.exists() else "empty (0 bytes)"
+        raise DatabaseError(f"{path}: the SQLite file is {state} but {found} of a map remain: refusing to "
+                            "start a new map over them (restore the file, or move them away to start anew)")
+
+
 def _session_ids(value: int | Iterable[int], what: str) -> np.ndarray:
     ids = np.atleast_1d(np.asarray(list(value) if not isinstance(value, int | np.integer) else value))
     if ids.dtype.kind not in "iu":
@@ -198,6 +231,8 @@ class Database:
         self._entries: EntryWriter | None = None  # a file's write-behind (the writer's)
         self._files: IndexFiles | None = None
         self._index: InvertedIndex | None = None
+        if self.path is not None and not readonly:
+            _refuse_a_new_map_over_old_files(self.path)
         self._sql = Sql(self._connect(), self._where(), readonly)
         _track(self)
         try:
