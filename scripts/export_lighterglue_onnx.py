@@ -46,6 +46,9 @@ from typing import Any
 
 import numpy as np
 
+from stablecues.errors import ConfigError
+from stablecues.features.xfeat import require_learned_extra
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "src" / "stablecues" / "data" / "xfeat_lighterglue.onnx"
 SHARED = Path(os.environ.get("STABLECUES_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -245,6 +248,10 @@ def main() -> None:
     ap.add_argument("--opset", type=int, default=17)
     ap.add_argument("--n-features", type=int, default=1000, help="XFeat features of the real check")
     args = ap.parse_args()
+    try:
+        require_learned_extra("exporting LighterGlue to ONNX")
+    except ConfigError as exc:
+        raise SystemExit(f"error: {exc}") from None
 
     import onnxruntime as ort
     import torch

