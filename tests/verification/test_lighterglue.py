@@ -168,3 +168,26 @@ def test_corrupt_or_missing_onnx_file_gives_one_line(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="expected a LighterGlue graph") as info:
         LighterGlueMatcher(default_xfeat_path(), threads=1).match(a, a)
     assert "\n" not in str(info.value)
+
+
+def test_lighterglue_rescues_a_pair_that_mutual_neighbours_reject() -> None:
+    """Night place 40 against day place 43 (within the ground truth's 8 places): mutual nearest
+    neighbours find 15 fundamental inliers, under the 20 needed; with ``rescue_inliers`` the pair
+    is verified again with LighterGlue, which accepts it and is named; places 30 apart stay
+    rejected, and a pair mutual neighbours accept is never re-matched."""
+    from stablecues.verification import preset as verification_preset
+    from stablecues.verification.verifier import Verifier, View
+
+    night, near, far, same = gardens_point("night_right/Image040.jpg", "day_right/Image043.jpg",
+                                           "day_right/Image070.jpg", "day_right/Image040.jpg")
+    plain = Verifier(verification_preset("learned", method="fundamental"))
+    rescue = Verifier(verification_preset("learned", method="fundamental", rescue_inliers=8))
+    first = plain.verify(View(night, None), View(near, None))
+    assert not first.accepted and first.n_inliers >= 8 and first.matcher == "mnn"
+    saved = rescue.verify(View(night, None), View(near, None))
+    assert saved.accepted and saved.matcher == "lighterglue" and saved.n_inliers > first.n_inliers
+    assert not rescue.verify(View(night, None), View(far, None)).accepted
+    kept = rescue.verify(View(night, None), View(same, None))
+    assert kept.accepted and kept.matcher == "mnn"
+    with pytest.raises(ConfigError, match="rescue_inliers"):
+        verification_preset("learned", rescue_inliers=-1)

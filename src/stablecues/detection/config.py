@@ -192,10 +192,12 @@ class DetectorConfig:
         if self.segmentation_precision not in ("float32", "int8"):
             raise ConfigError(f"segmentation_precision: expected 'float32' or 'int8', got "
                               f"{self.segmentation_precision!r}")
-        if (self.verification is not None and self.verification.matcher == "lighterglue"
-                and self.features.name != "xfeat"):
-            raise ConfigError(f"verification.matcher 'lighterglue' matches XFeat features, not "
-                              f"{self.features.name!r}: set features.name to 'xfeat' or another matcher")
+        v = self.verification
+        glue = v is not None and (v.matcher == "lighterglue" or v.rescue_inliers > 0)
+        if glue and self.features.name != "xfeat":
+            raise ConfigError(f"verification.matcher 'lighterglue' (or rescue_inliers) matches XFeat "
+                              f"features, not {self.features.name!r}: set features.name to 'xfeat' or "
+                              "another matcher")
         if self.semantic_source not in ("network", "labels"):
             raise ConfigError(
                 f"semantic_source: expected 'network' or 'labels', got {self.semantic_source!r}"

@@ -33,6 +33,9 @@ class VerificationConfig:
             does; about 200 ms a pair of 1000 features on one core, 40x the ``"mnn"`` matching).
         match_confidence: the confidence a LighterGlue match needs (LightGlue's
             ``filter_threshold``, 0.1).
+        rescue_inliers: with the ``"ratio"`` or ``"mnn"`` matcher, a pair they reject that still
+            reached this many geometric inliers is verified again with LighterGlue matches, whose
+            decision stands (the result names ``"lighterglue"``); 0: never. XFeat features only.
         ratio: Lowe's ratio for matching. 0.8 is Lowe's value; ORB-SLAM uses 0.75 for loop
             search. Matches are further filtered by the geometry, so we keep more.
         max_distance: largest Hamming distance of a match (of 256 bits). ORB-SLAM's TH_LOW is
@@ -96,6 +99,7 @@ class VerificationConfig:
     method: str = "triangles"
     matcher: str = "ratio"
     match_confidence: float = 0.1
+    rescue_inliers: int = 0
     ratio: float = 0.8
     max_distance: int = 64
     cross_check: bool = False
@@ -127,6 +131,8 @@ class VerificationConfig:
             raise ConfigError(f"verification method {self.method!r}: expected one of {', '.join(_METHODS)}")
         if self.matcher not in _MATCHERS:
             raise ConfigError(f"matcher {self.matcher!r}: expected one of {', '.join(_MATCHERS)}")
+        if self.rescue_inliers < 0:
+            raise ConfigError(f"rescue_inliers must be >= 0, got {self.rescue_inliers}")
         if not 0.0 <= self.match_confidence < 1.0:
             raise ConfigError(f"match_confidence must be in [0, 1), got {self.match_confidence}")
         if self.acceptance not in _ACCEPTANCE:

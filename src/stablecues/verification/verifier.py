@@ -164,8 +164,17 @@ class Verifier:
             The decision, the matches, triangles, inliers and relative pose (candidate -> query).
         """
         cfg = self.config
+        result = self._verify_with(cfg.matcher, query, candidate, must_beat)
+        if (cfg.rescue_inliers and cfg.matcher != "lighterglue" and not result.accepted
+                and result.status is not Status.OUTRANKED and result.n_inliers >= cfg.rescue_inliers):
+            return self._verify_with("lighterglue", query, candidate, must_beat)
+        return result
+
+    def _verify_with(self, matcher: str, query: View, candidate: View, must_beat: int) -> Verification:
+        """:meth:`verify` with the correspondences of ``matcher``."""
+        cfg = self.config
         t0 = time.perf_counter()
-        matches = self._match(query, candidate)
+        matches = self._match(matcher, query, candidate)
         static = 0
         if cfg.static_px is not None and len(matches):
             moved = np.linalg.norm(query.features.keypoints[matches.query].astype(np.float64)
@@ -180,29 +189,29 @@ class Verifier:
         method = self._method_for(configured, query, candidate)
         fallback = method is not configured
         if len(matches) < must_beat:
-            ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, cfg.matcher)
+            ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, matcher)
             return ctx.finish(Status.OUTRANKED, f"{len(matches)} matches cannot reach the {must_beat} "
                                                 "inliers of a loop already accepted (not checked)")
         if fallback and not cfg.fallback:
-            ctx = _Context(query, candidate, matches, configured, False, t0, timings, static, cfg.matcher)
+            ctx = _Context(query, candidate, matches, configured, False, t0, timings, static, matcher)
             return ctx.finish(Status.TOO_FEW_3D, "no 3D points (fallback disabled)")
         if fallback:
             logger.debug("no 3D points for %s: falling back to %s", cfg.method, method.value)
         if method is Method.TRIANGLES and not _metric(query.points, candidate.points):
             method = Method.SIMILAR_TRIANGLES  # a monocular side: its scale is unknown
-        ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, cfg.matcher)
+        ctx = _Context(query, candidate, matches, method, fallback, t0, timings, static, matcher)
         return self._checks[method](ctx)
 
-    def _match(self, query: View, candidate: View) -> Matches:
-        """The correspondences of the configured matcher (``VerificationConfig.matcher``)."""
+    def _match(self, matcher: str, query: View, candidate: View) -> Matches:
+        """The correspondences of ``matcher`` (see ``VerificationConfig.matcher``)."""
         cfg = self.config
-        if cfg.matcher == "lighterglue":
+        if matcher == "lighterglue":
             if self._lighterglue is None:
                 from .lighterglue import LighterGlueMatcher
 
                 self._lighterglue = LighterGlueMatcher()
             return self._lighterglue.match(query.features, candidate.features, cfg.match_confidence)
-        mnn = cfg.matcher == "mnn"
+        mnn = matcher == "mnn"
         use_fvec = not mnn and query.fvec is not None and candidate.fvec is not None
         return match_features(
             query.features,
