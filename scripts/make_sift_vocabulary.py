@@ -20,12 +20,13 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from make_vocabulary import camvid_train_val  # the same frames as the ORB vocabulary
 from stablecues.cli.vocab import dask_client
-from stablecues.features import SiftConfig
+from stablecues.features import ExtractorConfig, SiftConfig
 from stablecues.vocabulary import DEFAULT_VOCABULARIES, save_vocabulary, train_vocabulary
 from stablecues.vocabulary.distributed import extract_descriptor_sets
 
@@ -45,6 +46,17 @@ def main() -> None:
 
     images = camvid_train_val(args.data)
     config = SiftConfig()
+    train_and_save(args, images, ["camvid/train", "camvid/val"], config,
+                   extractor=f"OpenCV SIFT, strongest {config.n_features}, contrast "
+                             f"{config.contrast_threshold}, edge {config.edge_threshold}, "
+                             f"sigma {config.sigma}",
+                   command="python scripts/make_sift_vocabulary.py")
+
+
+def train_and_save(args: argparse.Namespace, images: list[Path], sources: list[str], config: ExtractorConfig,
+                   extractor: str, command: str) -> dict[str, Any]:
+    """Extract ``config``'s features of ``images``, train the vocabulary (``args``: k, levels,
+    seed, scheduler, out), save it to ``args.out`` and its provenance beside it as JSON."""
     t0 = time.perf_counter()
     with dask_client(args.scheduler) as client:
         sets = extract_descriptor_sets(images, config, client)
@@ -55,19 +67,19 @@ def main() -> None:
     save_vocabulary(voc, args.out)
     info = voc.info()
     meta = {
-        "file": args.out.name, "images": len(images), "sources": ["camvid/train", "camvid/val"],
+        "file": args.out.name, "images": len(images), "sources": sources,
         "descriptors": int(sum(s.shape[0] for s in sets)), "descriptor_kind": str(voc.descriptor_kind),
         "k": info.k, "L": info.levels, "words": info.n_words, "nodes": info.n_nodes,
         "weighting": info.weighting, "scoring": info.scoring, "levels_up": voc.levels_up,
         "seed": args.seed, "extract_seconds": round(t1 - t0, 1), "train_seconds": round(t2 - t1, 1),
         "scheduler": args.scheduler or "none (serial)",
         "fingerprint": info.fingerprint,
-        "extractor": f"OpenCV SIFT, strongest {config.n_features}, contrast {config.contrast_threshold}, "
-                     f"edge {config.edge_threshold}, sigma {config.sigma}",
-        "command": "python scripts/make_sift_vocabulary.py",
+        "extractor": extractor,
+        "command": command,
     }
     args.out.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
     print(json.dumps(meta, indent=2))
+    return meta
 
 
 if __name__ == "__main__":

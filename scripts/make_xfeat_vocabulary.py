@@ -21,18 +21,15 @@ hierarchical k-means (L2 on the unit descriptors) with k = 10, L = 4 (10^4 words
 from __future__ import annotations
 
 import argparse
-import json
-import time
 from pathlib import Path
 
 import numpy as np
 
+from make_sift_vocabulary import train_and_save  # the same training and provenance
 from make_vocabulary import camvid_train_val  # the same CamVid frames as the ORB vocabulary
-from stablecues.cli.vocab import dask_client
 from stablecues.features import XFeatConfig
 from stablecues.imageio import list_images
-from stablecues.vocabulary import DEFAULT_VOCABULARIES, save_vocabulary, train_vocabulary
-from stablecues.vocabulary.distributed import extract_descriptor_sets
+from stablecues.vocabulary import DEFAULT_VOCABULARIES
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -72,32 +69,11 @@ def main() -> None:
 
     camvid = camvid_train_val(args.data)
     indoor, indoor_sources = indoor_images(args.data)
-    images = camvid + indoor
     config = XFeatConfig()
-    t0 = time.perf_counter()
-    with dask_client(args.scheduler) as client:
-        sets = extract_descriptor_sets(images, config, client)
-        t1 = time.perf_counter()
-        voc = train_vocabulary(sets, k=args.k, levels=args.levels, seed=args.seed, client=client)
-    t2 = time.perf_counter()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_vocabulary(voc, args.out)
-    info = voc.info()
-    meta = {
-        "file": args.out.name, "images": len(images),
-        "sources": [f"camvid/train + camvid/val ({len(camvid)})", *indoor_sources],
-        "descriptors": int(sum(s.shape[0] for s in sets)), "descriptor_kind": str(voc.descriptor_kind),
-        "k": info.k, "L": info.levels, "words": info.n_words, "nodes": info.n_nodes,
-        "weighting": info.weighting, "scoring": info.scoring, "levels_up": voc.levels_up,
-        "seed": args.seed, "extract_seconds": round(t1 - t0, 1), "train_seconds": round(t2 - t1, 1),
-        "scheduler": args.scheduler or "none (serial)",
-        "fingerprint": info.fingerprint,
-        "extractor": f"XFeat (shipped ONNX), best {config.n_features}, "
-                     f"threshold {config.detection_threshold}",
-        "command": "python scripts/make_xfeat_vocabulary.py",
-    }
-    args.out.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
-    print(json.dumps(meta, indent=2))
+    train_and_save(args, camvid + indoor, [f"camvid/train + camvid/val ({len(camvid)})", *indoor_sources],
+                   config, extractor=f"XFeat (shipped ONNX), best {config.n_features}, "
+                                     f"threshold {config.detection_threshold}",
+                   command="python scripts/make_xfeat_vocabulary.py")
 
 
 if __name__ == "__main__":
