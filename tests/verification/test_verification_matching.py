@@ -213,3 +213,27 @@ def test_compiled_matching_agrees_with_numpy_on_real_frames() -> None:
                 _assert_same_matches(a, b)
                 total += len(a)
     assert total > 200  # real matches were compared, not empty sets
+
+
+def test_float_brute_force_is_the_full_distance_matrix_search() -> None:
+    """Brute force over float descriptors (one float32 product, no distance matrix) finds what
+    the full matrix of scaled distances finds: each query's nearest candidate, its best and
+    second distances, and with cross-checking the mutual pairs only."""
+    from stablecues.verification.matching import scaled_distances
+
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=(300, 64)).astype(np.float32)
+    q = base[:200] + 0.3 * rng.normal(size=(200, 64)).astype(np.float32)
+    c = base[50:] + 0.3 * rng.normal(size=(250, 64)).astype(np.float32)
+    fq = Features(np.zeros((200, 2), np.float32), q, np.zeros(200, np.int16), np.zeros(200, np.float32),
+                  np.zeros(200, np.float32), np.zeros(200, np.float32), (640, 480))
+    fc = Features(np.zeros((250, 2), np.float32), c, np.zeros(250, np.int16), np.zeros(250, np.float32),
+                  np.zeros(250, np.float32), np.zeros(250, np.float32), (640, 480))
+    d = scaled_distances(q, c)
+    for cross in (False, True):
+        m = match_features(fq, fc, ratio=0.9, max_distance=256, cross_check=cross)
+        assert len(m) > 100
+        assert (m.candidate == np.argmin(d[m.query], axis=1)).all()
+        assert (m.distance == d[m.query, m.candidate]).all()
+        if cross:
+            assert (np.argmin(d[:, m.candidate], axis=0) == m.query).all()
