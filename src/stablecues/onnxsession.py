@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, ModelError
+from .errors import ConfigError, ModelError, reason
 
 __all__ = ["check_graph", "default_threads", "graph_metadata", "open_session", "set_default_threads",
            "shared_session"]
@@ -63,9 +63,7 @@ def open_session(path: Path, what: str, threads: int | None = None) -> Any:
     try:
         return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own untyped errors
-        text = str(exc).strip()
-        first = text.splitlines()[0][:160] if text else type(exc).__name__
-        raise ModelError(f"{path}: expected an ONNX {what}, could not load it ({first})") from None
+        raise ModelError(f"{path}: expected an ONNX {what}, could not load it ({reason(exc)})") from None
 
 
 def shared_session(path: Path, what: str, threads: int | None = None) -> Any:

@@ -36,7 +36,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, ModelError
+from ..errors import ConfigError, ModelError, reason
 from ..imageio import to_grey
 from ..onnxsession import check_graph, graph_metadata, shared_session
 from ..types import DescriptorKind, Features
@@ -145,7 +145,8 @@ class XFeatNetwork:
         try:
             desc, peaks, rel = self.session.run(None, {"image": image[None, None]})
         except Exception as exc:  # onnxruntime raises its own untyped errors
-            raise ModelError(f"{self.path}: XFeat inference failed on a {w}x{h} image ({exc})") from exc
+            raise ModelError(f"{self.path}: XFeat inference failed on a {w}x{h} image "
+                             f"({reason(exc)})") from None
         shapes = (desc.shape, peaks.shape, rel.shape)
         if shapes != ((1, 64, h // _CELL, w // _CELL), (1, 1, h, w), (1, 1, h // _CELL, w // _CELL)):
             raise ModelError(f"{self.path}: XFeat outputs shaped {shapes} for a {w}x{h} image")

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, InputError, ModelError
+from ..errors import ConfigError, InputError, ModelError, reason
 from ..onnxsession import check_graph, graph_metadata, shared_session
 from ..types import Features
 from .matching import Matches
@@ -99,9 +99,8 @@ class LighterGlueNetwork:
         try:
             (scores,) = self.session.run(None, feed)
         except Exception as exc:  # onnxruntime raises its own untyped errors
-            first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
             raise ModelError(f"{self.path}: LighterGlue inference failed on {n} x {m} features "
-                             f"({first})") from None
+                             f"({reason(exc)})") from None
         if scores.shape != (1, n + 1, m + 1):
             raise ModelError(f"{self.path}: LighterGlue output shaped {scores.shape} for {n} x {m} features")
         return np.asarray(scores[0], np.float32)
