@@ -61,6 +61,15 @@ class QueryConfig:
         viewpoint_margin: a step must lower the scale change by at least this much (the
             estimate's noise: a median over a few dozen inlier pairs).
         viewpoint_inliers: a step needs at least this fraction of the accepted entry's inliers.
+        sequence: SeqSLAM's sequence stage (:mod:`stablecues.detection.sequence`): candidates
+            are ranked by their sequence score, the mean normalised score along the best line
+            through the last ``sequence`` queries' results (this one included), instead of
+            this frame's score alone; islands, verification and the temporal window then run
+            as before on that ranking. With ``DetectorConfig.confidence = "sequence"`` the
+            loop's confidence is its inliers times the sequence score of its entry. 0 or 1:
+            no sequence stage. The history restarts with each run of frames (``run_break``)
+            and, after a map is reopened, is re-queried from the stored entries.
+        sequence_tolerance: each step of the line may land this many entries either side.
     """
 
     exclude_recent: int = 20
@@ -83,8 +92,13 @@ class QueryConfig:
     viewpoint_scale: float = 0.15
     viewpoint_margin: float = 0.05
     viewpoint_inliers: float = 0.75
+    sequence: int = 0
+    sequence_tolerance: int = 1
 
     def __post_init__(self) -> None:
+        if self.sequence < 0 or self.sequence_tolerance < 0:
+            raise ConfigError(f"sequence >= 0 and sequence_tolerance >= 0 are required, got "
+                              f"{self.sequence} and {self.sequence_tolerance}")
         if self.exclude_recent < 0 or self.max_results < 1 or self.temporal_k < 1:
             raise ConfigError("exclude_recent >= 0, max_results >= 1 and temporal_k >= 1 are required")
         if self.islands_verified < 1:
@@ -160,8 +174,11 @@ class DetectorConfig:
             the stream (the triangle check then compares shapes), or None for no such 3D.
         confidence: what ranks accepted loops (the score precision-recall curves sweep):
             "inliers", the geometric inliers of the verified loop (plus the normalised BoW
-            score, below 1, to break ties), or "bow", the normalised BoW score alone (as
-            DLoopDetector). Without verification it is always the BoW score.
+            score, below 1, to break ties), "sequence", those inliers times the loop entry's
+            sequence score (``query.sequence`` >= 2: a loop whose preceding frames also scored
+            its preceding entries ranks above a lone frame that fits one wrong place), or
+            "bow", the normalised BoW score alone (as DLoopDetector). Without verification it
+            is always the BoW score.
         domain_window: how many recent frames of the stream (this one included) decide whether
             the stream is in the segmentation network's domain: the median of their frame
             certainties gates the weighting (``weighting.domain``) and the mask
@@ -181,14 +198,17 @@ class DetectorConfig:
     similarity: bool = True
     weighting: WeightingConfig | None = None
     monocular: MonocularConfig | None = None
-    confidence: Literal["inliers", "bow"] = "inliers"
+    confidence: Literal["inliers", "sequence", "bow"] = "inliers"
     domain_window: int = 30
 
     def __post_init__(self) -> None:
         if self.domain_window < 1:
             raise ConfigError(f"domain_window: expected >= 1 frames, got {self.domain_window}")
-        if self.confidence not in ("inliers", "bow"):
-            raise ConfigError(f"confidence: expected 'inliers' or 'bow', got {self.confidence!r}")
+        if self.confidence not in ("inliers", "sequence", "bow"):
+            raise ConfigError(f"confidence: expected 'inliers', 'sequence' or 'bow', got {self.confidence!r}")
+        if self.confidence == "sequence" and self.query.sequence < 2:
+            raise ConfigError(f"confidence 'sequence' needs query.sequence >= 2 (frames), got "
+                              f"{self.query.sequence}")
         if self.segmentation_precision not in ("float32", "int8"):
             raise ConfigError(f"segmentation_precision: expected 'float32' or 'int8', got "
                               f"{self.segmentation_precision!r}")

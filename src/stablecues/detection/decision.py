@@ -85,6 +85,7 @@ class LoopDecision:
         n_kept: features kept after semantic masking (= n_features without masking).
         mask_fallback: masking kept too few, so every feature was kept.
         timings: milliseconds per stage.
+        sequence_score: the candidate's sequence score (``query.sequence`` >= 2), else NaN.
     """
 
     frame_index: int
@@ -107,6 +108,7 @@ class LoopDecision:
     n_kept: int = 0
     mask_fallback: bool = False
     timings: dict[str, float] = field(default_factory=dict)
+    sequence_score: float = math.nan
 
     @property
     def accepted(self) -> bool:
@@ -138,6 +140,8 @@ class LoopDecision:
             "checked": [[c.frame, c.verification.accepted, c.verification.n_inliers, c.verification.n_matches]
                         for c in self.checked],
         }
+        if math.isfinite(self.sequence_score):
+            out["sequence_score"] = round(self.sequence_score, 6)
         v = self.verification
         if v is not None:
             out.update(

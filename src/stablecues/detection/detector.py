@@ -26,6 +26,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
 from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
 from .prepare import FramePreparer, PreparedFrame, Segmenter, as_calibration
+from .sequence import Scored, SequenceHistory, sequence_scores
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +221,8 @@ class _Query:
     raw_of: dict[int, float] = field(default_factory=dict)
     limit: int = 0
     support: int = 0
+    current: Scored = field(default_factory=Scored.empty)
+    window: list[Scored] = field(default_factory=list)
 
 
 class LoopDetector:
@@ -286,6 +290,9 @@ class LoopDetector:
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
         self.preparer.restore_certainties([float(m["certainty"]) for m in metas if "certainty" in m])
+        self._sequence = SequenceHistory(self.config.query.sequence)
+        if self.config.query.sequence >= 2 and latest >= 0:
+            self._restore_sequence(present, metas)
         if self.config.monocular is not None:  # the latest entries are the next frame's neighbours
             for k in present[max(present.size - self.config.monocular.neighbours, 0):].tolist():
                 e = self.db.entry(k)
@@ -297,6 +304,25 @@ class LoopDetector:
                 self._window_island = (int(isl[0]), int(isl[1]))
                 self._window_n = int(last.get("window_n", 0))
                 self._window_query = int(last.get("window_query", n - 1))
+
+    def _restore_sequence(self, present: np.ndarray, metas: list[dict[str, Any]]) -> None:
+        """The sequence history of a reopened map: the latest stored entries of the current run
+        queried again as they were (each entry's ``limit``, its score with its predecessor), so
+        that a resumed stream scores its sequences as an uninterrupted one."""
+        q = self.config.query
+        self._sequence.start(self._run_start)
+        recent = [int(e) for e in present[max(present.size - (q.sequence - 1), 0):].tolist()
+                  if int(e) >= self._run_start]
+        for e in recent:  # oldest first: push puts the newest at the front
+            m = metas[e]
+            limit, ns = m.get("limit"), (m.get("adjacent") if q.use_nss else 1.0)
+            if (not isinstance(limit, int) or not isinstance(ns, int | float) or limit <= 0
+                    or ns < q.min_nss_factor):
+                self._sequence.push(Scored.empty())
+                continue
+            results = self.db.query(self.db.entry(e).bow, max_results=q.max_results, max_id=limit)
+            self._sequence.push(Scored.of(np.array([r.entry_id for r in results], np.int64),
+                                          np.array([r.score for r in results]) / float(ns)))
 
     def close(self) -> None:
         self.db.close()
@@ -383,6 +409,7 @@ class LoopDetector:
         entry = len(self.db)
         self._continuity = self._continuity_of(prep.bow)
         found = self._query(prep.bow, frame, entry)
+        self._sequence.push(found.current)
         timings["query"] = (time.perf_counter() - t) * 1e3
         status = found.status
         verification: Verification | None = None
@@ -392,12 +419,18 @@ class LoopDetector:
             status, verification, checked = self._verify(prep, found)
             timings["verify"] = (time.perf_counter() - t) * 1e3
         if store:
-            self._store(frame, prep)
+            self._store(frame, prep, limit=found.limit)
         timings["total"] = (time.perf_counter() - prep.t_start) * 1e3
         cand = found.candidate
         confidence = found.score
+        seq = math.nan
+        if found.window and cand >= 0:
+            seq = float(sequence_scores(np.array([cand]), found.window,
+                                        tolerance=self.config.query.sequence_tolerance)[0])
         if verification is not None and self.config.confidence == "inliers":
             confidence = float(max(verification.n_inliers, found.support)) + min(confidence, 0.999)
+        elif verification is not None and self.config.confidence == "sequence":
+            confidence = float(max(verification.n_inliers, found.support)) * seq
         frames = self._entry_frames
         return LoopDecision(
             frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
@@ -409,7 +442,7 @@ class LoopDetector:
             islands=tuple((frames[i.first], frames[i.last], frames[i.best], i.score) for i in found.islands),
             checked=checked, points_source=prep.points_source, n_features=prep.n_features,
             n_kept=len(prep.features),
-            mask_fallback=prep.mask_fallback, timings=timings,
+            mask_fallback=prep.mask_fallback, timings=timings, sequence_score=seq,
         )
 
     def store(self, frame: Frame, features: FeaturesLike | None = None) -> int:
@@ -418,6 +451,8 @@ class LoopDetector:
         prep = self.preparer.prepare(frame, features)
         entry = len(self.db)
         self._continuity = self._continuity_of(prep.bow)
+        self._sequence.start(self._continuity[1])
+        self._sequence.push(Scored.empty())  # no query: a gap in the sequence, frames stay aligned
         self._store(frame, prep)
         return entry
 
@@ -549,9 +584,11 @@ class LoopDetector:
             reason=result.reason + f"; pose from a 3D-3D fit: {int(inliers.sum())} of {len(m)} matches "
                                    f"within 99 % noise, rms {rms:.3f} m")
 
-    def _store(self, frame: Frame, prep: PreparedFrame) -> None:
+    def _store(self, frame: Frame, prep: PreparedFrame, limit: int = 0) -> None:
         t = time.perf_counter()
         meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
+        if self.config.query.sequence >= 2 and limit > 0:  # to query it again after a reopen
+            meta["limit"] = int(limit)
         adjacent, run_start = self._continuity
         if math.isfinite(adjacent):
             meta["adjacent"] = round(adjacent, 9)
@@ -581,6 +618,7 @@ class LoopDetector:
         """Steps 3-4: the candidate and the stage that rejected it (None: verify it)."""
         q = self.config.query
         out = _Query()
+        self._sequence.start(self._continuity[1])
         hi = self._exclusion_limit(float(frame.timestamp))
         out.limit = hi
         if self.config.similarity:
@@ -606,17 +644,22 @@ class LoopDetector:
         norm = raw / ns
         out.results = [(int(e), float(v)) for e, v in zip(ids, norm, strict=True)]
         out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
+        out.current = Scored.of(ids, norm)
+        rank = norm
+        if q.sequence >= 2:  # SeqSLAM: the candidates ranked by their line through the recent queries
+            out.window = self._sequence.window(out.current)
+            rank = sequence_scores(ids, out.window, tolerance=q.sequence_tolerance)
         ok = norm >= q.alpha
         best = int(np.argmax(norm))
         out.candidate, out.raw_score, out.score = int(ids[best]), float(raw[best]), float(norm[best])
         if not ok.any():
             out.status = Status.LOW_SCORES
             return out
-        out.islands = sorted(compute_islands(ids[ok], norm[ok], q.island_gap), key=lambda i: -i.score)
+        out.islands = sorted(compute_islands(ids[ok], rank[ok], q.island_gap), key=lambda i: -i.score)
         island = out.islands[0]
         out.consistent = self._update_window(island, entry)
         out.candidate, out.raw_score = island.best, out.raw_of[island.best]
-        out.score, out.island = island.best_score, island
+        out.score, out.island = out.raw_of[island.best] / ns, island
         if out.consistent < q.temporal_k:
             out.status = Status.NO_TEMPORAL_CONSISTENCY
         return out

@@ -313,7 +313,9 @@ def _run_meta(
     config: DetectorConfig, preset_name: str, n: int, meta: dict[str, Any] | None
 ) -> dict[str, Any]:
     """What ``meta.json`` records about the run, ``meta`` last (it wins)."""
-    if config.confidence == "inliers" and config.verification is not None:
+    if config.confidence == "sequence" and config.verification is not None:
+        score_column = "geometric inliers x sequence score"
+    elif config.confidence == "inliers" and config.verification is not None:
         score_column = "geometric inliers + normalised BoW score"
     else:
         score_column = "normalised BoW score"

@@ -1,0 +1,121 @@
+"""The sequence stage (SeqSLAM's line through the recent queries' scores)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_run_break import STEP, _wall
+
+from stablecues import Frame, LoopDetector, preset
+from stablecues.detection.decision import Status
+from stablecues.detection.sequence import Scored, SequenceHistory, sequence_scores
+from stablecues.errors import ConfigError
+
+
+def _results(pairs: dict[int, float]) -> Scored:
+    return Scored.of(np.array(list(pairs), np.int64), np.array(list(pairs.values())))
+
+
+def test_a_line_of_scores_beats_a_lone_spike() -> None:
+    """Entry 50 scores highest for the current query alone, but only entry 20 is on a line:
+    the four previous queries scored 19, 18, 17, 16."""
+    history = [_results({20: 0.5, 50: 0.9}), _results({19: 0.6, 70: 0.3}), _results({18: 0.5}),
+               _results({17: 0.55, 90: 0.8}), _results({16: 0.5})]
+    s = sequence_scores(np.array([20, 50]), history)
+    assert s[0] == pytest.approx((0.5 + 0.6 + 0.5 + 0.55 + 0.5) / 5)
+    assert s[1] == pytest.approx(0.9 / 5)  # nothing of its line in the history
+    # alone, the current query's own scores
+    assert sequence_scores(np.array([20, 50]), history[:1]).tolist() == [0.5, 0.9]
+
+
+def test_the_best_speed_and_the_tolerance_count() -> None:
+    """A map recorded at half the query's frame rate (entries advance 0.5 a frame) and one at
+    twice it (2 a frame): both lines are found; a step off the line by one entry still counts
+    with tolerance 1, not with 0."""
+    slow = [_results({40: 1.0}), _results({40: 1.0}), _results({39: 1.0}), _results({39: 1.0})]
+    fast = [_results({40: 1.0}), _results({38: 1.0}), _results({36: 1.0}), _results({34: 1.0})]
+    assert sequence_scores(np.array([40]), slow)[0] == pytest.approx(1.0)
+    assert sequence_scores(np.array([40]), fast)[0] == pytest.approx(1.0)
+    off = [_results({40: 1.0}), _results({38: 1.0}), _results({37: 1.0})]  # speed 1, one entry late
+    assert sequence_scores(np.array([40]), off, speeds=(1.0,), tolerance=1)[0] == pytest.approx(1.0)
+    assert sequence_scores(np.array([40]), off, speeds=(1.0,), tolerance=0)[0] == pytest.approx(1 / 3)
+    assert sequence_scores(np.array([], np.int64), off).shape == (0,)
+
+
+def test_the_history_is_kept_per_run() -> None:
+    h = SequenceHistory(3)
+    h.start(0)
+    for k in range(5):
+        h.push(_results({k: 1.0}))
+    window = h.window(_results({9: 1.0}))
+    assert [int(w.ids[0]) for w in window] == [9, 4, 3]  # the current one, then the newest two
+    h.start(0)
+    assert len(h) == 3  # the same run: kept
+    h.start(7)
+    assert len(h) == 0  # a new run: another place
+
+
+def _stream() -> list[Frame]:
+    """Frames 0-11 drive along a wall; frame 12 cuts back to the start (5 px off) and frames
+    12-19 drive the same stretch again."""
+    pano = _wall(11)
+    xs = [STEP * i for i in range(12)] + [5 + STEP * i for i in range(8)]
+    return [Frame(index=i, name=f"{i}.png", timestamp=float(i),
+                  image=np.ascontiguousarray(pano[:, x:x + 320])) for i, x in enumerate(xs)]
+
+
+def _config(confidence: str = "sequence", length: int = 4) -> object:
+    return preset("fast", {"query": {"exclude_recent": 20, "run_break": 0.4, "run_break_score": 0.1,
+                                     "exclude_recent_min": 3, "sequence": length},
+                           "confidence": confidence, "similarity": False})
+
+
+def _decisions(det: LoopDetector, frames: list[Frame]) -> list[tuple[object, ...]]:
+    return [(d.status, d.candidate_frame, d.confidence, d.sequence_score) for d in map(det.process, frames)]
+
+
+def test_the_second_drive_is_found_along_its_line_with_a_sequence_confidence() -> None:
+    frames = _stream()
+    det = LoopDetector(_config())
+    found = {}
+    for f in frames:
+        d = det.process(f)
+        if d.accepted:
+            assert d.verification is not None and math.isfinite(d.sequence_score)
+            assert d.confidence == pytest.approx(d.verification.n_inliers * d.sequence_score)
+            assert d.extras()["sequence_score"] == pytest.approx(d.sequence_score, abs=1e-6)
+            found[f.index] = (d.candidate_frame, d.sequence_score)
+    assert set(found) >= set(range(13, 20)), found
+    assert all(abs(cand - (i - 12)) <= 1 for i, (cand, _) in found.items())
+    # without the stage, no sequence score, and the confidence is the inliers + BoW score
+    plain = LoopDetector(preset("fast", {"query": {"exclude_recent": 20, "run_break": 0.4,
+                                                   "run_break_score": 0.1, "exclude_recent_min": 3},
+                                         "similarity": False}))
+    d = [plain.process(f) for f in frames][-1]
+    assert d.accepted and math.isnan(d.sequence_score) and "sequence_score" not in d.extras()
+
+
+def test_a_reopened_map_scores_its_sequences_as_an_uninterrupted_one(tmp_path: Path) -> None:
+    frames = _stream()
+    whole = _decisions(LoopDetector(_config()), frames)
+    path = tmp_path / "map.sqlite"
+    with LoopDetector(_config(), database=path) as det:
+        first = _decisions(det, frames[:15])  # reopened in the middle of the second drive
+    with LoopDetector(_config(), database=path) as det:
+        rest = _decisions(det, frames[15:])
+    assert [d[:2] for d in first + rest] == [d[:2] for d in whole]
+    got = np.array([d[2:] for d in first + rest], float)
+    want = np.array([d[2:] for d in whole], float)
+    np.testing.assert_allclose(got, want, rtol=1e-6, equal_nan=True)
+    assert any(s is Status.LOOP_DETECTED for s, *_ in rest)
+
+
+def test_sequence_settings_are_checked() -> None:
+    with pytest.raises(ConfigError, match="query.sequence >= 2"):
+        preset("fast", {"confidence": "sequence"})
+    for bad in ({"sequence": -1}, {"sequence_tolerance": -1}):
+        with pytest.raises(ConfigError, match="sequence"):
+            preset("fast", {"query": bad})
