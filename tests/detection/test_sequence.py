@@ -67,19 +67,20 @@ def _stream() -> list[Frame]:
                   image=np.ascontiguousarray(pano[:, x:x + 320])) for i, x in enumerate(xs)]
 
 
-def _config(confidence: str = "sequence", length: int = 4) -> object:
+def _config(confidence: str = "sequence", length: int = 4, rank: bool = False, least: float = 0.0) -> object:
     return preset("fast", {"query": {"exclude_recent": 20, "run_break": 0.4, "run_break_score": 0.1,
-                                     "exclude_recent_min": 3, "sequence": length},
-                           "confidence": confidence, "similarity": False})
+                                     "exclude_recent_min": 3, "sequence": length, "sequence_rank": rank},
+                           "confidence": confidence, "min_confidence": least, "similarity": False})
 
 
 def _decisions(det: LoopDetector, frames: list[Frame]) -> list[tuple[object, ...]]:
     return [(d.status, d.candidate_frame, d.confidence, d.sequence_score) for d in map(det.process, frames)]
 
 
-def test_the_second_drive_is_found_along_its_line_with_a_sequence_confidence() -> None:
+@pytest.mark.parametrize("rank", [False, True])
+def test_the_second_drive_is_found_along_its_line_with_a_sequence_confidence(rank: bool) -> None:
     frames = _stream()
-    det = LoopDetector(_config())
+    det = LoopDetector(_config(rank=rank))
     found = {}
     for f in frames:
         d = det.process(f)
@@ -100,17 +101,37 @@ def test_the_second_drive_is_found_along_its_line_with_a_sequence_confidence() -
 
 def test_a_reopened_map_scores_its_sequences_as_an_uninterrupted_one(tmp_path: Path) -> None:
     frames = _stream()
-    whole = _decisions(LoopDetector(_config()), frames)
+    config = _config(rank=True)  # the ranking too reads the history
+    whole = _decisions(LoopDetector(config), frames)
     path = tmp_path / "map.sqlite"
-    with LoopDetector(_config(), database=path) as det:
+    with LoopDetector(config, database=path) as det:
         first = _decisions(det, frames[:15])  # reopened in the middle of the second drive
-    with LoopDetector(_config(), database=path) as det:
+    with LoopDetector(config, database=path) as det:
         rest = _decisions(det, frames[15:])
     assert [d[:2] for d in first + rest] == [d[:2] for d in whole]
     got = np.array([d[2:] for d in first + rest], float)
     want = np.array([d[2:] for d in whole], float)
     np.testing.assert_allclose(got, want, rtol=1e-6, equal_nan=True)
     assert any(s is Status.LOOP_DETECTED for s, *_ in rest)
+
+
+def test_min_confidence_refuses_a_weak_loop() -> None:
+    """The operating point: the same loops, refused (status low_confidence) when their
+    confidence is under min_confidence, kept when it is over."""
+    frames = _stream()
+    det = LoopDetector(_config())
+    base = [det.process(f) for f in frames]
+    confs = sorted(d.confidence for d in base if d.accepted)
+    cut = (confs[0] + confs[-1]) / 2
+    gated = LoopDetector(_config(least=cut))
+    for b, d in zip(base, map(gated.process, frames), strict=True):
+        assert d.candidate_frame == b.candidate_frame and d.confidence == pytest.approx(b.confidence)
+        if b.accepted:
+            assert d.status is (Status.LOOP_DETECTED if b.confidence >= cut else Status.LOW_CONFIDENCE)
+        else:
+            assert d.status is b.status
+    with pytest.raises(ConfigError, match="min_confidence"):
+        preset("fast", {"min_confidence": -1.0})
 
 
 def test_sequence_settings_are_checked() -> None:

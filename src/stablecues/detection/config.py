@@ -61,14 +61,17 @@ class QueryConfig:
         viewpoint_margin: a step must lower the scale change by at least this much (the
             estimate's noise: a median over a few dozen inlier pairs).
         viewpoint_inliers: a step needs at least this fraction of the accepted entry's inliers.
-        sequence: SeqSLAM's sequence stage (:mod:`stablecues.detection.sequence`): candidates
-            are ranked by their sequence score, the mean normalised score along the best line
-            through the last ``sequence`` queries' results (this one included), instead of
-            this frame's score alone; islands, verification and the temporal window then run
-            as before on that ranking. With ``DetectorConfig.confidence = "sequence"`` the
-            loop's confidence is its inliers times the sequence score of its entry. 0 or 1:
-            no sequence stage. The history restarts with each run of frames (``run_break``)
-            and, after a map is reopened, is re-queried from the stored entries.
+        sequence: SeqSLAM's sequence stage (:mod:`stablecues.detection.sequence`): the last
+            ``sequence`` queries' results (this one included) are kept, and a candidate's
+            sequence score is the mean normalised score along the best line through them
+            (:attr:`LoopDecision.sequence_score`). With ``DetectorConfig.confidence =
+            "sequence"`` the loop's confidence is its inliers times that score. 0 or 1: no
+            sequence stage. The history restarts with each run of frames (``run_break``) and,
+            after a map is reopened, is re-queried from the stored entries.
+        sequence_rank: also rank the candidates by their sequence score instead of this
+            frame's score alone (islands, verification and the temporal window then run on
+            that ranking), SeqSLAM's own use of it. Off in every preset: on CamVid's
+            train_drives it let a wrong entry with a long line win (bench_learned.py).
         sequence_tolerance: each step of the line may land this many entries either side.
     """
 
@@ -93,6 +96,7 @@ class QueryConfig:
     viewpoint_margin: float = 0.05
     viewpoint_inliers: float = 0.75
     sequence: int = 0
+    sequence_rank: bool = False
     sequence_tolerance: int = 1
 
     def __post_init__(self) -> None:
@@ -179,6 +183,9 @@ class DetectorConfig:
             its preceding entries ranks above a lone frame that fits one wrong place), or
             "bow", the normalised BoW score alone (as DLoopDetector). Without verification it
             is always the BoW score.
+        min_confidence: a verified loop whose confidence is under this is refused (status
+            ``low_confidence``): the operating point of a ranking whose verification gates are
+            loose on purpose (``learned``). 0: every verified loop stands.
         domain_window: how many recent frames of the stream (this one included) decide whether
             the stream is in the segmentation network's domain: the median of their frame
             certainties gates the weighting (``weighting.domain``) and the mask
@@ -199,6 +206,7 @@ class DetectorConfig:
     weighting: WeightingConfig | None = None
     monocular: MonocularConfig | None = None
     confidence: Literal["inliers", "sequence", "bow"] = "inliers"
+    min_confidence: float = 0.0
     domain_window: int = 30
 
     def __post_init__(self) -> None:
@@ -206,6 +214,8 @@ class DetectorConfig:
             raise ConfigError(f"domain_window: expected >= 1 frames, got {self.domain_window}")
         if self.confidence not in ("inliers", "sequence", "bow"):
             raise ConfigError(f"confidence: expected 'inliers', 'sequence' or 'bow', got {self.confidence!r}")
+        if not self.min_confidence >= 0.0:
+            raise ConfigError(f"min_confidence: expected >= 0, got {self.min_confidence}")
         if self.confidence == "sequence" and self.query.sequence < 2:
             raise ConfigError(f"confidence 'sequence' needs query.sequence >= 2 (frames), got "
                               f"{self.query.sequence}")

@@ -21,6 +21,7 @@ class Status(enum.StrEnum):
     LOW_SCORES = "low_scores"  # every candidate under alpha
     NO_TEMPORAL_CONSISTENCY = "no_temporal_consistency"
     NO_GEOMETRICAL_CONSISTENCY = "no_geometrical_consistency"
+    LOW_CONFIDENCE = "low_confidence"  # verified, but its confidence is under min_confidence
 
 
 @dataclass(frozen=True)

@@ -431,6 +431,8 @@ class LoopDetector:
             confidence = float(max(verification.n_inliers, found.support)) + min(confidence, 0.999)
         elif verification is not None and self.config.confidence == "sequence":
             confidence = float(max(verification.n_inliers, found.support)) * seq
+        if status is Status.LOOP_DETECTED and not confidence >= self.config.min_confidence:
+            status = Status.LOW_CONFIDENCE
         frames = self._entry_frames
         return LoopDecision(
             frame_index=int(frame.index), entry_id=entry if store else -1, status=status,
@@ -646,9 +648,10 @@ class LoopDetector:
         out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
         out.current = Scored.of(ids, norm)
         rank = norm
-        if q.sequence >= 2:  # SeqSLAM: the candidates ranked by their line through the recent queries
+        if q.sequence >= 2:
             out.window = self._sequence.window(out.current)
-            rank = sequence_scores(ids, out.window, tolerance=q.sequence_tolerance)
+            if q.sequence_rank:  # SeqSLAM: the candidates ranked by their line through the recent queries
+                rank = sequence_scores(ids, out.window, tolerance=q.sequence_tolerance)
         ok = norm >= q.alpha
         best = int(np.argmax(norm))
         out.candidate, out.raw_score, out.score = int(ids[best]), float(raw[best]), float(norm[best])

@@ -15,7 +15,8 @@ not pass is, in pipeline order:
 ``wrong_island``    a true loop was in an island that passed ``alpha``, but not in one that was
                     verified (or, with a temporal window, not in the best one)
 ``temporal``        the true island was there, but temporal consistency stopped the frame
-``geometry``        a true loop was verified and rejected, and nothing else was accepted
+``geometry``        a true loop was verified and rejected (by the geometry, or its confidence
+                    was under the detector's ``min_confidence``), and nothing else was accepted
 ``wrong_accepted``  a wrong loop was accepted instead (a false positive of this query)
 ``below_threshold`` the true loop was accepted, below the 100 %-precision threshold
 ``found``           accepted above the threshold: counted in the recall at 100 % precision
