@@ -17,15 +17,18 @@ one record per add::
 
 Records are written in id order from the end of the header; once every entry in the log is in
 SQLite the next record is written at the header again (no truncation, no sync), so stale records
-may follow the live ones. Reading back (at open, by the next writer) takes records in order,
-skips those whose id SQLite already holds, and stops at the first record that is torn, fails
-its CRC or does not carry the next id: stale records always carry smaller ids than live ones.
+may follow the live ones. Reading back (at open, by the next writer) takes records in order and
+skips those whose id SQLite already holds: stale records always carry smaller ids than live ones.
+A record that is damaged (a flipped byte, a wrong length) does not end the reading: the rest of
+the file is searched for the next intact record (its magic, a CRC that holds) with a later id,
+every intact record is recovered, and the ids in between are kept as removed entries with a
+warning naming them. With no later record behind it, a bad record is the torn last one.
 
 A process killed at any point loses at most the entry whose record was being written (a torn
-record fails its CRC); the entries in the log are put into SQLite before the index is loaded,
-so index and entries agree as before. Manifests (the index's list of segment files) go through
-the same queue after the entries they cover, and replaced segment files are deleted only after
-the manifest that drops them is committed.
+record fails its CRC, and nothing follows it but stale records); the entries in the log are put
+into SQLite before the index is loaded, so index and entries agree as before. Manifests (the
+index's list of segment files) go through the same queue after the entries they cover, and
+replaced segment files are deleted only after the manifest that drops them is committed.
 """
 
 from __future__ import annotations
@@ -43,7 +46,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from ..errors import DatabaseError
+from .packing import pack_arrays
 from .schema import MAX_SESSION, Sql
 
 log = logging.getLogger(__name__)
@@ -65,6 +71,11 @@ MAX_BEHIND_BYTES = 256 << 20
 
 INSERT_ENTRY = ("INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session) "
            "VALUES (?, ?, ?, ?, ?, ?, ?)")
+INSERT_REMOVED = ("INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session, removed) "
+                  "VALUES (?, ?, ?, ?, ?, ?, ?, 1)")
+#: a removed entry's blobs: no words, no features
+EMPTY_BOW = pack_arrays({"words": np.zeros(0, np.int32), "weights": np.zeros(0, np.float32)})
+EMPTY_PAYLOAD = pack_arrays({"fvec": np.zeros(0, np.int32), "image_size": np.zeros(2, np.int32)})
 
 
 def log_path(db_path: Path) -> Path:
@@ -103,12 +114,65 @@ def encode(row: Row) -> bytes:
     return b"".join(record_parts(row))
 
 
-def read_log(path: Path, uuid: bytes, first_id: int) -> tuple[list[Row], str | None]:
+class LogContents(NamedTuple):
+    """What :func:`read_log` found: the intact records from the first id asked on, the ids lost
+    to damaged records between them (the map keeps them as removed entries), and a note on the
+    damage for a warning (None: none)."""
+
+    rows: list[Row]
+    lost: list[int]
+    note: str | None
+
+
+def _record_at(data: bytes, view: memoryview, pos: int) -> tuple[Row, int] | str | None:
+    """The record at ``pos``: (its row, the offset after it); a string naming what is wrong
+    with a record whose CRC holds but whose contents do not (not one this code wrote); None
+    where there is no intact record (torn, damaged, stale bytes or the end)."""
+    if pos + _REC.size > len(data):
+        return None
+    _, length, crc = _REC.unpack_from(data, pos)
+    room = min(_MAX_RECORD, len(data) - pos - _REC.size)
+    if length < _BODY.size or length > room:
+        return None
+    body = view[pos + _REC.size: pos + _REC.size + length]
+    if zlib.crc32(body) != crc:  # the CRC decides, not the magic: a damaged magic loses nothing
+        return None
+    eid, ts, n, session, lb, lp, lm = _BODY.unpack_from(body)
+    if _BODY.size + lb + lp + lm != length:
+        return f"record of entry {eid} has inconsistent lengths"
+    if n < 0 or not 0 <= session <= MAX_SESSION or eid < 0:
+        return f"record of entry {eid} has a bad id, feature count or session"
+    a = _BODY.size
+    try:
+        meta = bytes(body[a + lb + lp: a + lb + lp + lm]).decode()
+    except UnicodeDecodeError:
+        return f"record of entry {eid} has metadata that is not UTF-8"
+    row = Row(eid, ts, n, bytes(body[a: a + lb]), bytes(body[a + lb: a + lb + lp]), meta, session)
+    return row, pos + _REC.size + length
+
+
+def _next_record(data: bytes, view: memoryview, pos: int, expected: int) -> tuple[Row, int] | None:
+    """The first intact record from ``pos`` on that carries ``expected`` or a later id (a live
+    record after damage), skipping stale ones: their ids are always smaller."""
+    while True:
+        pos = data.find(_REC_MAGIC, pos)
+        if pos < 0:
+            return None
+        found = _record_at(data, view, pos)
+        if isinstance(found, tuple) and found[0].id >= expected:
+            return found
+        pos += 1
+
+
+def read_log(path: Path, uuid: bytes, first_id: int) -> LogContents:
     """The records of ``path`` from id ``first_id`` on, in order.
 
-    Returns:
-        the rows, and why reading stopped before the end of the file's live records (None:
-        it did not), for a warning.
+    A record that is damaged (its CRC fails, its length or magic is wrong, its contents are not
+    ones this code writes) does not end the reading: the rest of the file is searched for the
+    next intact record with a later id (records are framed by a magic and a CRC, and stale
+    records carry smaller ids than live ones), so every intact record after the damage is
+    recovered and only the ids in between are lost. Where no later record follows, what was
+    there is the torn last record or the stale bytes behind the live ones: nothing is lost.
     """
     data = path.read_bytes()  # the allocation is the file's own size
     if len(data) < HEADER_SIZE or data[: len(_MAGIC)] != _MAGIC:
@@ -116,34 +180,40 @@ def read_log(path: Path, uuid: bytes, first_id: int) -> tuple[list[Row], str | N
     if data[len(_MAGIC):HEADER_SIZE] != uuid:
         raise DatabaseError(f"{path}: entry log of another database (its id differs)")
     rows: list[Row] = []
+    lost: list[int] = []
+    damage: list[str] = []
+    last = None
     pos, expected = HEADER_SIZE, first_id
     view = memoryview(data)
-    while pos + _REC.size <= len(data):
-        magic, length, crc = _REC.unpack_from(data, pos)
-        room = min(_MAX_RECORD, len(data) - pos - _REC.size)
-        if magic != _REC_MAGIC or length < _BODY.size or length > room:
-            break  # the end of what was written last (or a torn record)
-        body = view[pos + _REC.size: pos + _REC.size + length]
-        if zlib.crc32(body) != crc:
-            break
-        eid, ts, n, session, lb, lp, lm = _BODY.unpack_from(body)
-        pos += _REC.size + length
-        if _BODY.size + lb + lp + lm != length:
-            return rows, f"record of entry {eid} has inconsistent lengths"
-        if eid < expected:
-            continue  # already in the database (or a stale record)
-        if eid > expected:
-            break  # a stale record after the live ones
-        if n < 0 or not 0 <= session <= MAX_SESSION:
-            return rows, f"record of entry {eid} has a bad feature count or session"
-        a = _BODY.size
-        try:
-            meta = bytes(body[a + lb + lp: a + lb + lp + lm]).decode()
-        except UnicodeDecodeError:
-            return rows, f"record of entry {eid} has metadata that is not UTF-8"
-        rows.append(Row(eid, ts, n, bytes(body[a: a + lb]), bytes(body[a + lb: a + lb + lp]), meta, session))
-        expected += 1
-    return rows, None
+    while pos < len(data):
+        found = _record_at(data, view, pos)
+        if not isinstance(found, tuple):
+            nxt = _next_record(data, view, pos + 1, expected)
+            if nxt is None:  # the end of what was written last (a torn record, stale bytes)
+                if pos + _REC.size + 8 <= len(data) and int.from_bytes(
+                        data[pos + _REC.size: pos + _REC.size + 8], "little", signed=True) == expected:
+                    last = (f"the last record (entry {expected}) is torn or damaged and not recovered "
+                            "(a kill while it was written, never acknowledged, or damage)")
+                break
+            damage.append(found or f"damaged record at byte {pos}")
+            found = nxt
+        row, end = found
+        if row.id < expected:  # already in the database (or a stale record)
+            pos = end
+            continue
+        if row.id > expected:  # records lost to damage before this one
+            lost.extend(range(expected, row.id))
+        rows.append(row)
+        expected, pos = row.id + 1, end
+    note = None
+    if lost:
+        shown = ", ".join(map(str, lost[:10])) + (", ..." if len(lost) > 10 else "")
+        note = (f"{len(lost)} entr{'y' if len(lost) == 1 else 'ies'} lost to damaged records "
+                f"(ids {shown}; kept as removed entries); {damage[0]}; the {len(rows)} intact "
+                "records around them recovered")
+    if last is not None:
+        note = last if note is None else f"{note}; {last}"
+    return LogContents(rows, lost, note)
 
 
 class _Call(NamedTuple):
@@ -370,7 +440,7 @@ def replay(path: Path, uuid: bytes, sql: Sql, first_id: int) -> int:
     if not path.exists():
         return 0
     try:
-        rows, stopped = read_log(path, uuid, first_id)
+        contents = read_log(path, uuid, first_id)
     except DatabaseError as exc:
         aside = path.with_name(path.name + f".unread-{int(time.time())}")
         try:
@@ -379,17 +449,32 @@ def replay(path: Path, uuid: bytes, sql: Sql, first_id: int) -> int:
             raise DatabaseError(f"{exc}; cannot move it aside ({err.strerror or err})") from exc
         log.warning("%s: moved to %s, nothing read from it", exc, aside.name)
         return 0
-    if stopped:
-        log.warning("%s: %s; the entries from there on are lost", path, stopped)
-    if rows:
+    if contents.note:
+        log.warning("%s: %s", path, contents.note)
+    rows = contents.rows
+    if rows or contents.lost:
+        holes = _holes(rows, contents.lost)
         try:
             with sql.write() as conn:
                 conn.executemany(INSERT_ENTRY, [tuple(r) for r in rows])
+                conn.executemany(INSERT_REMOVED, holes)
         except sqlite3.DatabaseError as exc:
             raise DatabaseError(f"{path}: cannot put its {len(rows)} entries into the database "
                                 f"({exc})") from exc
         log.info("%s: %d entries put into the database", path, len(rows))
-    return len(rows)
+    return len(rows) + len(contents.lost)
+
+
+def _holes(rows: list[Row], lost: list[int]) -> list[tuple[Any, ...]]:
+    """SQL values of the lost ids as removed entries, each with the timestamp and session of the
+    record before it (after it for the first), so that time order and sessions stay."""
+    out = []
+    for eid in lost:
+        before = [r for r in rows if r.id < eid]
+        near = before[-1] if before else next((r for r in rows if r.id > eid), None)
+        ts, session = (near.timestamp, near.session) if near is not None else (0.0, 0)
+        out.append((eid, ts, 0, EMPTY_BOW, EMPTY_PAYLOAD, "null", session))
+    return out
 
 
 def row_values(row: Row, columns: str) -> tuple[Any, ...]:

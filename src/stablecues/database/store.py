@@ -54,7 +54,7 @@ import numpy as np
 from ..errors import DatabaseError, InputError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
-from .entrylog import INSERT_ENTRY, EntryWriter, Row, log_path, replay, row_values
+from .entrylog import EMPTY_BOW, EMPTY_PAYLOAD, INSERT_ENTRY, EntryWriter, Row, log_path, replay, row_values
 from .files import (
     IndexFiles,
     LogCheckpointer,
@@ -65,7 +65,7 @@ from .files import (
     stored_segments,
 )
 from .inverted import InvertedIndex
-from .packing import pack_arrays, pack_buffer, unpack_arrays
+from .packing import pack_buffer, unpack_arrays
 from .schema import (
     FORMAT_VERSION,
     MAX_SESSION,
@@ -89,9 +89,8 @@ _CHECKPOINT_PAGES = 256  # SQLite copies its log into the file every ~1 MB: shor
 #: stalled 40 of 10,000 back-to-back adds of 57 kB entries for 36-55 ms each (the log copied
 #: inside the commit); 2 MB: slowest add 7.4-9.3 ms, mean 0.28 -> 0.32 ms (README, engine)
 _BACKSTOP_PAGES = 512
-_EMPTY_BOW = pack_arrays({"words": np.zeros(0, np.int32), "weights": np.zeros(0, np.float32)})
+_EMPTY_BOW, _EMPTY_PAYLOAD = EMPTY_BOW, EMPTY_PAYLOAD
 _EMPTY_BOW_ARRAYS = unpack_arrays(_EMPTY_BOW)  # a removed entry's vector in a memory database
-_EMPTY_PAYLOAD = pack_arrays({"fvec": np.zeros(0, np.int32), "image_size": np.zeros(2, np.int32)})
 
 
 @dataclass(frozen=True)
