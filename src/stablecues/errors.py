@@ -47,6 +47,11 @@ class ModelError(StableCuesError):
     """A network weights file that is missing or unreadable."""
 
 
+class OutputError(StableCuesError):
+    """A path the project cannot write a file to (a link, a folder, a device, a missing or
+    read-only folder, a full disk)."""
+
+
 class ClusterError(StableCuesError):
     """A Dask cluster that cannot be reached or started, or a task lost with its worker."""
 

@@ -100,8 +100,12 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.evaluate import eval_file_name, evaluate_run, evaluation_funnel, save_evaluation
     from ..evaluation.funnel import format_funnel
     from ..groundtruth import View, fit_view, load_ground_truth
+    from ..outputs import check_output, write_output
     from ..runs import format_timing_table, load_run
+    from ..runs.store import json_text
 
+    if args.json:
+        check_output(args.json, "evaluation")
     if args.protocol != "exact" and args.tolerance is None:
         raise ConfigError(
             f"--protocol {args.protocol} needs --tolerance N (frames either side; README and demo use 2)"
@@ -134,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     )
     inside = save_evaluation(doc, run_.path / eval_file_name(args.protocol, doc["tolerance"]))
     if args.json:
-        save_evaluation(doc, args.json)
+        write_output(args.json, json_text(doc), "evaluation")
     print(format_summary(doc))
     funnel = evaluation_funnel(doc)
     if funnel is not None:

@@ -108,7 +108,10 @@ def _print_folder(summary: dict[str, Any]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..datasets.rosbag import bag_summary
+    from ..outputs import check_output, write_output
 
+    if args.json:
+        check_output(args.json, "summary")  # before reading a whole bag
     if is_rosbag(args):
         summary = bag_summary(args.dataset, **rosbag_options(args))
         _print_bag(summary)
@@ -116,6 +119,6 @@ def run(args: argparse.Namespace) -> int:
         summary = _folder_summary(args.dataset, args.format)
         _print_folder(summary)
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2) + "\n")
+        write_output(args.json, json.dumps(summary, indent=2) + "\n", "summary")
         print(f"written: {args.json}")
     return 0

@@ -255,7 +255,12 @@ def _gt(args: argparse.Namespace) -> int:
     from ..geometry.rotations import matrix_to_quat
     from ..mav.loops import loops_from_trajectory
     from ..mav.plots import loop_figure
+    from ..outputs import check_output, output_file
     from ..trajectory import read_poses, read_times
+
+    npy = args.npy or args.out.with_suffix(".npy")
+    check_output(npy, "ground truth", make_folder=True)
+    check_output(args.out, "figure", make_folder=True)
 
     times, poses = read_poses(args.poses)
     if times is None:  # KITTI poses carry no times: from --times, else gaps are in frames only
@@ -281,11 +286,10 @@ def _gt(args: argparse.Namespace) -> int:
         min_gap_s=min_gap_s,
         min_gap_frames=args.min_gap_frames,
     )
-    npy = args.npy or args.out.with_suffix(".npy")
-    npy.parent.mkdir(parents=True, exist_ok=True)
-    np.save(npy, gt)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    loop_figure(positions, gt).savefig(args.out, dpi=150)
+    with output_file(npy, "ground truth") as tmp:
+        np.save(tmp, gt)
+    with output_file(args.out, "figure") as tmp:
+        loop_figure(positions, gt).savefig(tmp, dpi=150)
     print(
         f"{npy}: {gt.shape[0]} frames, {int(gt.sum())} loop pairs ({int(gt.any(axis=1).sum())} query frames)"
     )

@@ -117,12 +117,17 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..outputs import check_output, output_file, write_output
+
+    for path, what in ((args.json, "JSON table"), (args.csv, "CSV table")):
+        if path:
+            check_output(path, what)
     rows = collect_rows(list(args.run_dirs), args.protocol)
     print(format_rows(rows))
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")
+        write_output(args.json, json.dumps(rows, indent=2) + "\n", "JSON table")
     if args.csv:
-        with args.csv.open("w", newline="", encoding="utf-8") as fh:
+        with output_file(args.csv, "CSV table") as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
             w = csv.DictWriter(fh, fieldnames=list(COLUMNS))
             w.writeheader()
             w.writerows(rows)

@@ -87,7 +87,10 @@ def run(args: argparse.Namespace) -> int:
     from ..detection import preset
     from ..detection.run import run_dataset
     from ..errors import ConfigError
+    from ..outputs import check_output
 
+    if args.rerun is not None:  # the Rerun SDK writes it: never through a link, over a device, ...
+        check_output(args.rerun, "Rerun recording")
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one")
     config = preset(args.preset, parse_overrides(args.set))

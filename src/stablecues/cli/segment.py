@@ -106,16 +106,18 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from ..outputs import check_output, write_output
     from ..semantics.evaluate import evaluate_model, format_report
     from ..semantics.inference import SegmentationModel
 
+    if args.json:
+        check_output(args.json, "evaluation", make_folder=True)  # before the evaluation runs
     model = SegmentationModel.load(args.weights, threads=args.threads, precision=args.precision)
     result = evaluate_model(model, args.data, args.split, args.samples, limit=args.limit, progress=True)
     result["weights"] = str(model.path)
     print(format_report(result))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        write_output(args.json, json.dumps(result, indent=2) + "\n", "evaluation")
     return 0
 
 
@@ -149,10 +151,12 @@ def _image(args: argparse.Namespace) -> int:
     from ..config import merge
     from ..features import make_extractor
     from ..imageio import read_image
+    from ..outputs import check_output, output_file
     from ..semantics.inference import SegmentationModel
     from ..semantics.masking import MaskingConfig, select_features
     from ..semantics.viz import plot_keypoints, plot_overlay, plot_uncertainty
 
+    check_output(args.out, "figure", make_folder=True)
     overrides: dict[str, Any] = {"mode": args.mode}
     if args.max_uncertainty is not None:
         overrides["max_uncertainty"] = args.max_uncertainty
@@ -173,8 +177,8 @@ def _image(args: argparse.Namespace) -> int:
     plot_keypoints(axes[1, 1], rgb, features, report)
     axes[1, 1].set_title(f"{axes[1, 1].get_title()} - mode {config.mode}")
     fig.tight_layout()
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=100)
+    with output_file(args.out, "figure") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     print(f"{args.out}: {report.kept}/{report.total} keypoints kept, fallback={report.fallback}")
     return 0

@@ -110,8 +110,12 @@ def run(args: argparse.Namespace) -> int:
     from ..detection.pair import ImagePairVerifier
     from ..errors import InputError
     from ..geometry import rotation_angle_deg
+    from ..outputs import check_output, output_file, write_output
     from ..verification import preset
 
+    for path, what in ((args.json, "verification record"), (args.plot, "plot")):
+        if path:
+            check_output(path, what, make_folder=True)
     if (args.right_a is None) != (args.right_b is None):
         raise InputError("give --right-a and --right-b together")
     if (args.depth_a is None) != (args.depth_b is None):
@@ -179,8 +183,7 @@ def run(args: argparse.Namespace) -> int:
             "features": to_dict(features),
             "result": res.to_dict(),
         }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(record, indent=1))
+        write_output(args.json, json.dumps(record, indent=1), "verification record")
         print(f"json:       {args.json}")
     if args.plot:
         import matplotlib
@@ -198,8 +201,8 @@ def run(args: argparse.Namespace) -> int:
             out.candidate.image,
             res,
         )
-        args.plot.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(args.plot, bbox_inches="tight")
+        with output_file(args.plot, "plot") as tmp:
+            fig.savefig(tmp, bbox_inches="tight")
         plt.close(fig)
         print(f"plot:       {args.plot}")
     return 0

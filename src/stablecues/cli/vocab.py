@@ -90,8 +90,12 @@ def run(args: argparse.Namespace) -> int:
         _print_info(path, load_vocabulary(path))
         return 0
     if args.vocab_command == "convert":
+        from ..outputs import check_output, output_file
+
+        check_output(args.output, "vocabulary")
         voc = load_vocabulary(vocabulary_file(args.input))
-        save_vocabulary(voc, args.output)
+        with output_file(args.output, "vocabulary") as tmp:
+            save_vocabulary(voc, tmp)
         print(f"wrote {args.output} ({voc.n_words} words)")
         return 0
     return _train(args)
@@ -154,6 +158,7 @@ def dask_client(
 def _train(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from ..features import make_extractor
+    from ..outputs import check_output, output_file
     from ..types import ORB_DESCRIPTOR
     from ..vocabulary import parse_scoring, parse_weighting, save_vocabulary, train_vocabulary
     from ..vocabulary.distributed import extract_descriptor_sets
@@ -166,12 +171,14 @@ def _train(args: argparse.Namespace) -> int:
             f"{args.out}: the DBoW2/ORB-SLAM text format holds {ORB_DESCRIPTOR} words only, "
             f"--features {config.name} gives {kind}: write a .scv file"
         )
+    check_output(args.out, "vocabulary")  # before any training
     files = _image_files(args.images)
     with dask_client(args.scheduler, args.workers) as client:
         sets = extract_descriptor_sets(files, config, client)
         voc = train_vocabulary(sets, k=args.k, levels=args.levels, weighting=weighting, scoring=scoring,
                                seed=args.seed, client=client)
-    save_vocabulary(voc, args.out)
+    with output_file(args.out, "vocabulary") as tmp:
+        save_vocabulary(voc, tmp)
     info = voc.info()
     print(f"wrote {args.out}: {len(files)} images, {sum(s.shape[0] for s in sets)} {kind} descriptors, "
           f"k={info.k} L={info.levels}, {info.n_words} words")

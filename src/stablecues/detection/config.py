@@ -268,6 +268,9 @@ _MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal
 #: matches of the verification preset, no sequence) to 0.99 / 0.88 / 0.6x, CamVid train_drives
 #: 0.957 -> 0.950, val_drive 1.000 both (bench_learned.py, docs/learned.md); the loose gates alone
 #: gave 0.93 / 0.79 / 0.38. One pair (``stablecues verify``) keeps the verification preset's gates.
+#: Loops under confidence 20 are refused (``min_confidence``): on every development set that left
+#: R@100P as it was and cut the false loops accepted (Gardens Point 63 / 74 / 80 -> 4 / 7 / 7,
+#: train_drives 111 -> 67); 25 and 30 cut more and lost loops (``at_min_confidence``).
 _LEARNED_STREAM: dict[str, Any] = {"ratio": 1.0, "max_distance": 256, "min_fundamental_ratio": 0.0}
 
 #: preset name -> (masking preset, verification preset, other overrides, one line of description)
@@ -291,7 +294,8 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
                        "the default + monocular 3D: frames without other 3D triangulated against a "
                        "neighbour, loops checked by similar triangles where they can be formed"),
     "learned": (None, "learned", {"query": {**_MEASURED_QUERY, "sequence": 8}, "confidence": "sequence",
-                                  "features": {"name": "xfeat"}, "verification": _LEARNED_STREAM},
+                                  "min_confidence": 20.0, "features": {"name": "xfeat"},
+                                  "verification": _LEARNED_STREAM},
                 "pretrained XFeat features (ONNX) with their own vocabulary, matched by mutual nearest "
                 "neighbours, loops ranked by inliers times their 8-frame sequence score; for changing "
                 "light (day/night)"),

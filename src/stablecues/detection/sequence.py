@@ -10,8 +10,9 @@ fits best, the map traversed at another pace than the query.
 Here the matrix is never built: each recent query keeps its database results (the top
 ``max_results`` entries and their normalised scores capped at 1, what the query stage has
 anyway; right after a cut a frame's own predecessor is another place and its normalised scores
-run to 5 and more), an entry absent from them counts 0, and each step may land ``tolerance`` entries either side of the line
-(the best of them counts), which absorbs a pace that varies within the window. The cost is
+run to 5 and more), an entry absent from them counts 0, and each step may land ``tolerance``
+entries either side of the line (the best of them counts), which absorbs a pace that varies
+within the window. The cost is
 ``L * len(speeds) * (2 * tolerance + 1)`` binary searches over at most ``max_results`` ids per
 candidate, independent of the map's size.
 """

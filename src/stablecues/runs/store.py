@@ -114,6 +114,11 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
+def json_text(data: Mapping[str, Any]) -> str:
+    """``data`` as strict JSON text (NaN and infinities as null), as :func:`write_json` writes it."""
+    return json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n"
+
+
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
     """Write strict JSON atomically (temporary file, then rename).
 
@@ -121,7 +126,7 @@ def write_json(path: Path, data: Mapping[str, Any]) -> None:
     first, never written through), and the rename replaces ``path`` itself, not what a
     symbolic link there points to.
     """
-    text = json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n"
+    text = json_text(data)
     tmp = path.with_name(path.name + ".tmp")
     tmp.unlink(missing_ok=True)
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
