@@ -18,6 +18,9 @@ Measures, for each configuration (a preset, optionally with JSON overrides):
   ``bench_loops.py`` scores them (``_run_eval``: exact cell, no exclusion, loss funnel).
 * ``corridor``: the two-pass indoor set, scored as the revisits (exact cell, no exclusion), and
   with ``bench_loops.py``'s corridor protocols (exact / tolerance 2 / iBoW-LCD 2, exclusion 20).
+* ``small``: desk_loop10 (10 frames round a desk, frame 10 re-views frame 1) and the EuRoC stereo
+  loop pairs, run as ``bench_loops.py`` runs them (``bench_desk``, ``bench_euroc``), for the
+  configurations that are plain presets.
 
 Learned features, run only when named in ``--sections`` (minutes each):
 
@@ -32,7 +35,9 @@ Learned features, run only when named in ``--sections`` (minutes each):
   mutual nearest neighbours (XFeat; ORB on day_right -> night_right), the five with most matches
   verified by a fundamental matrix, the winner by inliers; top-1 correctness and R@100P.
 
-For every run: time per frame by stage (the run folder's per-frame stage times: extract, segment,
+For every run scored on a ground truth, ``at_min_confidence``: the accepted loops' TP / FP and
+R@100P had ``DetectorConfig.min_confidence`` been each of ``MIN_CONFIDENCES`` (the operating point
+a SLAM system would take). For every run: time per frame by stage (the run folder's per-frame stage times: extract, segment,
 mask, transform, lift, query, verify, add, total, whatever the detector records), as the mean
 milliseconds per frame over all frames but the first (the first one loads the network, the
 vocabulary's compiled code, ...); a stage that did not run for a frame counts 0 there, so the
@@ -73,7 +78,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench_loops import PROTOCOLS, REVISITS, SHARED, _run_eval, needs_segmentation, network_available
+from bench_loops import (
+    PROTOCOLS,
+    REVISITS,
+    SHARED,
+    _run_eval,
+    bench_desk,
+    bench_euroc,
+    needs_segmentation,
+    network_available,
+)
 from stablecues.database import Database, DatabaseConfig
 from stablecues.database.packing import unpack_arrays
 from stablecues.datasets import open_dataset
@@ -100,6 +114,8 @@ PAIRINGS = {
 WINDOWS = {"pm8": "gt_pm8.png", "pm2": "gt_pm2.png"}
 PROTOCOL = "exact cell of the ground-truth matrix, no exclusion window, the detector's accepted loops"
 TOP_FP = 3
+#: min_confidence values whose operating point (accepted TP / FP, R@100P) every run reports
+MIN_CONFIDENCES = (0, 10, 20, 25, 30, 40, 60)
 
 Configs = dict[str, tuple[str, dict[str, Any]]]  # label -> (preset name, overrides)
 
@@ -221,6 +237,18 @@ def candidates_correct(run: Any, gt: GroundTruth) -> int:
     return int(gt.matrix[frames[ok], cands[ok]].sum())
 
 
+def operating_points(run: Any, gt: GroundTruth) -> dict[str, Any]:
+    """The accepted loops' TP / FP and R@100P had the detector refused those under each
+    ``MIN_CONFIDENCES`` value (``DetectorConfig.min_confidence``: the gate changes nothing else
+    the detector does, so the run filtered is the run with the gate)."""
+    out: dict[str, Any] = {}
+    for m in MIN_CONFIDENCES:
+        gated = dataclasses.replace(run, accepted=run.accepted & (np.nan_to_num(run.scores, nan=-1.0) >= m))
+        ev, _ = evaluate_run(gated, gt, protocol="exact", tolerance=0, exclude=0)
+        out[str(m)] = {"tp": ev.tp, "fp": ev.fp, "r_at_100p": round(ev.recall_at_100p, 4)}
+    return out
+
+
 def score(run: Any, gt: GroundTruth, places: int | None) -> dict[str, Any]:
     """A run scored as ``_run_eval`` scores one (exact cell, no exclusion, its loss funnel)."""
     ev, _ = evaluate_run(run, gt, protocol="exact", tolerance=0, exclude=0)
@@ -229,7 +257,8 @@ def score(run: Any, gt: GroundTruth, places: int | None) -> dict[str, Any]:
             "tp_at_100p": ev.tp_at_100p, "threshold_at_100p": ev.threshold_at_100p,
             "tp": ev.tp, "fp": ev.fp, "auc": round(ev.auc, 4),
             "candidate_correct": candidates_correct(run, gt), "funnel": funnel.counts,
-            "top_false_positives": false_positives(run, ev, gt, places)}
+            "top_false_positives": false_positives(run, ev, gt, places),
+            "at_min_confidence": operating_points(run, gt)}
 
 
 def run_config(ds: Any, gts: dict[str, GroundTruth], label: str, spec: tuple[str, dict[str, Any]],
@@ -839,7 +868,19 @@ def bench_speed(configs: Configs, work: Path, network: bool, quick: int | None) 
     out["load_after"] = list(os.getloadavg())
     return out
 
-SECTIONS = {"gardens": bench_gardens, "revisits": bench_revisits, "corridor": bench_corridor}
+def bench_small(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """desk_loop10 and the EuRoC loop pairs as ``bench_loops.py`` runs them, for the configurations
+    that are plain presets (those functions take preset names)."""
+    names = [label for label, (name, over) in configs.items() if label == name and not over
+             and (network or not needs_segmentation(preset(name)))]
+    skipped = sorted(set(configs) - set(names))
+    if skipped:
+        print(f"  small sets: {', '.join(skipped)} skipped (not plain presets, or no network)", flush=True)
+    return {"desk_loop10": bench_desk(names), "euroc_pairs": bench_euroc(names), "skipped": skipped}
+
+
+SECTIONS = {"gardens": bench_gardens, "revisits": bench_revisits, "corridor": bench_corridor,
+            "small": bench_small}
 #: sections run only when named: each takes minutes
 EXTRA_SECTIONS = {"extract": bench_extract, "storage": bench_storage, "bruteforce": bench_bruteforce,
                   "speed": bench_speed}
