@@ -28,6 +28,8 @@ limit                           value            what it bounds (nearest real in
 ``MAX_CSV_FIELD_BYTES``         131,072          one CSV field (Python's own limit, named here)
 ``MAX_PLOTTED_LOOP_PAIRS``      20,000           loop pairs drawn on a trajectory picture (all of
                                                  them are saved; the picture says how many it drew)
+``MAX_SWEEP_CELLS``             10,000           configurations a ``sweep`` plans from its ``--vary``
+                                                 lists (checked before their product is built)
 =============================== ================ =====================================================
 
 Checked the same way, without a number to tune:
@@ -58,6 +60,7 @@ __all__ = [
     "MAX_PICKLE_BYTES",
     "MAX_PLOTTED_LOOP_PAIRS",
     "MAX_SIMILARITY_FRAMES",
+    "MAX_SWEEP_CELLS",
     "MAX_TEXT_BYTES",
     "MAX_YAML_DEPTH",
     "MAX_YAML_VALUES",
@@ -76,6 +79,7 @@ MAX_YAML_VALUES = 100_000
 MAX_PICKLE_BYTES = 64 << 20
 MAX_CSV_FIELD_BYTES = 131_072
 MAX_PLOTTED_LOOP_PAIRS = 20_000
+MAX_SWEEP_CELLS = 10_000
 
 
 def _size(n: int) -> str:

@@ -151,3 +151,24 @@ def test_hint_counts_a_mostly_excluded_run() -> None:
     assert exclusion_hint(RunSummary(Path("run"), 20, 1, {"close_matches_only": 12}, 1.0, 0), config) is None
     assert exclusion_hint(RunSummary(Path("run"), 20, 0, {"close_matches_only": 9}, 1.0, 0), config) is None
     assert exclusion_hint(RunSummary(Path("run"), 0, 0, {}, float("nan"), 0), config) is None
+
+
+def test_non_finite_settings_and_huge_sweeps_are_refused_in_one_line(
+    drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--set query.alpha=NaN`` (JSON reads it as a float) is refused before anything runs, and a
+    sweep whose --vary lists multiply past MAX_SWEEP_CELLS is refused before the grid is built."""
+    from stablecues.cli.sweep import override_sets
+    from stablecues.errors import ConfigError
+    from stablecues.limits import MAX_SWEEP_CELLS
+
+    for value in ("NaN", "Infinity", "-Infinity", "[0.1, NaN]"):
+        out = tmp_path / f"run_{len(value)}"
+        assert main(["run", str(drive), "--out", str(out), "--set", f"query.alpha={value}"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "not a finite number" in err and value in err
+        assert not out.exists()
+    with pytest.raises(ConfigError, match=f"1048576 configurations; a sweep plans at most {MAX_SWEEP_CELLS}"):
+        override_sets([], [f"query.alpha=[0.1, 0.2, 0.3, {k}]" for k in range(10)])
+    grid = override_sets(["query.refine=0"], ["query.alpha=[0.1, 0.2]", "query.island_gap=[2, 3, 4]"])
+    assert len(grid) == 6

@@ -61,6 +61,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+def _no_constant(name: str) -> Any:
+    raise ValueError(name)
+
+
 def parse_overrides(items: list[str]) -> dict[str, Any]:
     """``["query.alpha=0.2", "masking.mode=\\"hard\\""]`` -> nested override dict."""
     from ..errors import ConfigError
@@ -71,9 +75,12 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
         try:
-            value = json.loads(raw)
+            value = json.loads(raw, parse_constant=_no_constant)
         except json.JSONDecodeError:
             value = raw  # bare strings
+        except ValueError:  # NaN, Infinity: never a value a setting means
+            raise ConfigError(f"--set {item!r}: {raw.strip()} is not a finite number; give a number "
+                              "(or null where a setting may be off)") from None
         node = out
         parts = key.split(".")
         for part in parts[:-1]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -67,6 +68,7 @@ def parse_dataset(text: str, fmt: str) -> Any:
 def override_sets(set_items: list[str], vary_items: list[str]) -> list[dict[str, Any]]:
     """The product of every ``--vary`` list, each with the ``--set`` items."""
     from ..errors import ConfigError
+    from ..limits import MAX_SWEEP_CELLS
     from .run import parse_overrides
 
     axes: list[list[str]] = []
@@ -79,6 +81,10 @@ def override_sets(set_items: list[str], vary_items: list[str]) -> list[dict[str,
         if not isinstance(values, list) or not values:
             raise ConfigError(f"--vary {item!r}: expected KEY=[V1,V2,...] (a JSON list of one value or more)")
         axes.append([f"{key}={json.dumps(v)}" for v in values])
+    cells = math.prod(len(a) for a in axes)
+    if cells > MAX_SWEEP_CELLS:
+        raise ConfigError(f"--vary: {' x '.join(str(len(a)) for a in axes)} = {cells} configurations; "
+                          f"a sweep plans at most {MAX_SWEEP_CELLS} (vary fewer settings, or split it)")
     combos: list[list[str]] = [[]]
     for axis in axes:
         combos = [c + [v] for c in combos for v in axis]
