@@ -28,6 +28,8 @@ limit                           value            what it bounds (nearest real in
 ``MAX_CSV_FIELD_BYTES``         131,072          one CSV field (Python's own limit, named here)
 ``MAX_PLOTTED_LOOP_PAIRS``      20,000           loop pairs drawn on a trajectory picture (all of
                                                  them are saved; the picture says how many it drew)
+``MAX_BAG_METADATA_BYTES``      4 MiB            a ROS 2 bag's ``metadata.yaml`` (real ones: a few kB;
+                                                 YAML parses at about 1 s a megabyte)
 ``MAX_SWEEP_CELLS``             10,000           configurations a ``sweep`` plans from its ``--vary``
                                                  lists (checked before their product is built)
 =============================== ================ =====================================================
@@ -52,6 +54,7 @@ from pathlib import Path
 from .errors import DatasetError, StableCuesError
 
 __all__ = [
+    "MAX_BAG_METADATA_BYTES",
     "MAX_CALIBRATION_BYTES",
     "MAX_CSV_FIELD_BYTES",
     "MAX_GT_IMAGE_PIXELS",
@@ -80,6 +83,7 @@ MAX_PICKLE_BYTES = 64 << 20
 MAX_CSV_FIELD_BYTES = 131_072
 MAX_PLOTTED_LOOP_PAIRS = 20_000
 MAX_SWEEP_CELLS = 10_000
+MAX_BAG_METADATA_BYTES = 4 << 20
 
 
 def _size(n: int) -> str:

@@ -8,7 +8,9 @@ for frame against the EuRoC folder.
 
 from __future__ import annotations
 
+import os
 import pickle
+import shutil
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -576,3 +578,34 @@ def test_zero_header_stamps(tmp_path: Path, euroc: Euroc) -> None:
         DatasetError, match=r"zero\.bag: /cam/image_raw: expected header stamps, found a zero"
     ):
         open_rosbag(bag, stamps="header")
+
+
+@pytest.mark.parametrize("kind", ["sqlite3", "mcap"])
+def test_a_fifo_in_a_bag_folder_and_huge_metadata_are_refused_without_hanging(
+    kind: str, tmp_path: Path, bags: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A FIFO in place of the bag's storage file blocked `info` and `run` forever (issue 34): it
+    is refused in one line before the reader opens anything; a metadata.yaml over
+    MAX_BAG_METADATA_BYTES is refused before it is parsed."""
+    from stablecues.cli.main import main
+    from stablecues.limits import MAX_BAG_METADATA_BYTES
+
+    folder = tmp_path / "bag"
+    shutil.copytree(bags[kind], folder)
+    (storage,) = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
+    storage.unlink()
+    os.mkfifo(storage)
+    with pytest.raises(DatasetError, match=f"{storage.name}: not a regular file .* inside a ROS 2 bag"):
+        open_rosbag(folder)
+    assert main(["info", str(folder)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not a regular file" in err
+    storage.unlink()
+    shutil.copy(next(bags[kind].glob(f"*{storage.suffix}")), storage)
+    meta = folder / "metadata.yaml"
+    text = meta.read_text()
+    meta.write_text(text + "#" * (MAX_BAG_METADATA_BYTES + 1) + "\n")
+    with pytest.raises(DatasetError, match="ROS 2 bag metadata"):
+        open_rosbag(folder)
+    meta.write_text(text)
+    assert len(open_rosbag(folder)) > 0  # the same folder, repaired, opens

@@ -34,6 +34,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import stat
 import threading
 from collections import Counter
 from collections.abc import Iterator, Sequence
@@ -48,7 +49,7 @@ from ..errors import CalibrationError, ConfigError, DatasetError, ImageError, re
 from ..fileio import captured_stderr
 from ..geometry.camera import Calibration, PinholeCamera, Rectification
 from ..imageio import header_size, image_format, to_grey
-from ..limits import MAX_IMAGE_PIXELS
+from ..limits import MAX_BAG_METADATA_BYTES, MAX_IMAGE_PIXELS, check_file_size
 from ..trajectory import nearest, ns_to_seconds
 from ..types import Frame
 from .base import FrameRecord, SequenceDataset
@@ -151,6 +152,8 @@ def _open_reader(path: Path) -> Any:
             f"{path}: expected a ROS bag (a .bag, .db3 or .mcap file, or a ROS 2 bag folder with "
             "metadata.yaml)"
         )
+    if path.is_dir():
+        _check_bag_folder(path)
     # a bare .db3 of an older ROS 2 holds no message definitions: the standard ones are used
     default = get_typestore(Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE)
     reader = None
@@ -160,6 +163,25 @@ def _open_reader(path: Path) -> Any:
     except Exception as exc:  # rosbags raises assorted errors on a truncated or corrupt bag
         raise DatasetError(f"{path}: not a readable ROS bag ({reason(exc)})") from None
     return reader
+
+
+def _check_bag_folder(path: Path) -> None:
+    """A ROS 2 bag folder holds regular files only (a FIFO or a device named like its storage
+    file would block the reader forever), and its ``metadata.yaml`` is of a sane size (real ones
+    are a few kilobytes; parsing runs at about 1 s a megabyte)."""
+    check_file_size(path / "metadata.yaml", MAX_BAG_METADATA_BYTES, "ROS 2 bag metadata")
+    try:
+        entries = sorted(path.iterdir())
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot list the bag folder ({exc.strerror or exc})") from None
+    for entry in entries:
+        try:
+            mode = entry.stat().st_mode  # a link is judged by what it points to
+        except OSError:
+            continue  # a dangling link: the reader names it if the bag needs it
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise DatasetError(f"{entry}: not a regular file (a FIFO, device or socket) inside a ROS 2 bag "
+                               "folder; a bag's files must be regular files")
 
 
 def _messages(
