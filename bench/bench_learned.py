@@ -37,8 +37,9 @@ Learned features, run only when named in ``--sections`` (minutes each):
 
 For every run scored on a ground truth, ``at_min_confidence``: the accepted loops' TP / FP and
 R@100P had ``DetectorConfig.min_confidence`` been each of ``MIN_CONFIDENCES`` (the operating point
-a SLAM system would take). For every run: time per frame by stage (the run folder's per-frame stage times: extract, segment,
-mask, transform, lift, query, verify, add, total, whatever the detector records), as the mean
+a SLAM system would take). For every run: time per frame by stage (the run folder's per-frame
+stage times: extract, segment, mask, transform, lift, query, verify, add, total, whatever the
+detector records), as the mean
 milliseconds per frame over all frames but the first (the first one loads the network, the
 vocabulary's compiled code, ...); a stage that did not run for a frame counts 0 there, so the
 stages add up to the total; ``when_run_ms`` gives the mean over the frames where it ran.

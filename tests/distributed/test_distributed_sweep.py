@@ -7,6 +7,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import socket
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -167,6 +170,8 @@ def test_serial_cli_and_bad_grids(sequences: list[Path], tmp_path: Path,
         (["--set", "query.nonsense=1"], "nonsense"),
         (["--gt", "nobody=x.npy"], "NAME=FILE"),
         (["--workers", "0"], "at least one worker"),
+        (["--timeout", "nan"], "--timeout: expected a positive number of seconds, got nan"),
+        (["--timeout", "-1"], "--timeout: expected a positive number of seconds, got -1.0"),
     ]
     for extra, words in bad:
         assert main(["sweep", str(sequences[0]), "--out", str(tmp_path / "x"), *extra]) == 1
@@ -205,3 +210,36 @@ def test_an_unreachable_scheduler_is_one_error() -> None:
     with pytest.raises(ClusterError, match="cannot reach the scheduler at tcp://127.0.0.1:1"), \
             open_client("tcp://127.0.0.1:1", timeout_s=1):
         pass
+
+
+def _fake_service(reply: bytes | None) -> int:
+    """A TCP service on 127.0.0.1 that is not Dask: it sends ``reply`` (or nothing) and holds the
+    connection open."""
+    srv = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def serve() -> None:
+        while True:
+            conn, _ = srv.accept()
+            held.append(conn)
+            if reply:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return int(srv.getsockname()[1])
+
+
+@pytest.mark.parametrize("reply", [None, b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n"])
+def test_a_service_that_is_not_dask_is_one_line_within_the_timeout(
+    reply: bytes | None, sequences: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A silent service let the client wait past --timeout, an HTTP one was read as a frame
+    length of exabytes (a traceback): both are one line, within the timeout (issue 34)."""
+    port = _fake_service(reply)
+    t = time.monotonic()
+    assert main(["sweep", str(sequences[0]), "--out", str(tmp_path / "s"), "--preset", "bow",
+                 "--scheduler", f"tcp://127.0.0.1:{port}", "--timeout", "2"]) == 1
+    assert time.monotonic() - t < 10
+    err = capsys.readouterr().err.strip()
+    want = "no Dask scheduler answered within 2 s" if reply is None else "not as a Dask scheduler"
+    assert err.count("\n") == 0 and want in err and f"127.0.0.1:{port}" in err, err

@@ -134,9 +134,11 @@ def _quiet_dask(verbose: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..distributed import SweepOptions, open_client, plan_sweep, run_sweep
-    from ..distributed.cluster import CONNECT_TIMEOUT_S
+    from ..distributed.cluster import CONNECT_TIMEOUT_S, check_timeout
     from ..distributed.sweep import Mode, check_out
 
+    if args.timeout is not None:
+        check_timeout(args.timeout, "--timeout")
     datasets = _with_ground_truth([parse_dataset(d, args.format) for d in args.datasets], args.gt)
     tasks = plan_sweep(datasets, args.preset or ["default"], override_sets(args.set, args.vary))
     mode: Mode = "resume" if args.resume else "overwrite" if args.overwrite else "new"

@@ -147,6 +147,9 @@ def dask_client(
                           dashboard_address=None) as cluster, Client(cluster) as client:
             yield client
         return
+    from ..distributed.cluster import probe_scheduler
+
+    probe_scheduler(address, float(timeout.removesuffix("s")))  # silence or another service: one line
     try:
         client = Client(address, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:

@@ -7,6 +7,10 @@ imported when a cluster is asked for, never at import time.
 from __future__ import annotations
 
 import logging
+import math
+import socket
+import struct
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -19,7 +23,74 @@ log = logging.getLogger(__name__)
 CONNECT_TIMEOUT_S = 60.0
 
 
-__all__ = ["CONNECT_TIMEOUT_S", "ClusterError", "open_client", "worker_addresses"]
+#: a Dask scheduler's greeting (its handshake message) is a few hundred bytes
+_MAX_GREETING = 1 << 20
+
+__all__ = ["CONNECT_TIMEOUT_S", "ClusterError", "check_timeout", "open_client", "probe_scheduler",
+           "worker_addresses"]
+
+
+def check_timeout(value: float, what: str = "timeout") -> float:
+    """``value`` when it is a finite number of seconds above 0."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not number or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{what}: expected a positive number of seconds, got {value!r}")
+    return float(value)
+
+
+def _read_exactly(sock: socket.socket, n: int, deadline: float) -> bytes:
+    data = b""
+    while len(data) < n:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError
+        sock.settimeout(left)
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("the connection was closed")
+        data += chunk
+    return data
+
+
+def probe_scheduler(address: str, timeout_s: float) -> None:
+    """Check that a Dask scheduler answers at a ``tcp://host:port`` address within ``timeout_s``,
+    before ``distributed`` connects: a Dask listener greets every connection with its handshake
+    (a length, a frame count, frame lengths, frames), where another service sends nothing (the
+    client would wait past any timeout) or text (read as a frame length of exabytes). Other
+    schemes (tls, ucx, inproc) are left to ``distributed``.
+
+    Raises:
+        ClusterError: nothing answers, or what answers is not a Dask scheduler.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, loc = parse_address(address.strip())
+    except ValueError as exc:
+        raise ConfigError(f"scheduler address {address!r}: {exc}") from None
+    if scheme != "tcp":
+        return
+    try:
+        host, port = parse_host_port(loc)
+    except ValueError as exc:
+        raise ConfigError(f"scheduler address {address!r}: {exc}") from None
+    deadline = time.monotonic() + timeout_s
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            head = _read_exactly(sock, 8, deadline)
+            (total,) = struct.unpack("<Q", head)
+            if not 16 <= total <= _MAX_GREETING:
+                raise ClusterError(f"{address} answers, but not as a Dask scheduler (it sent "
+                                   f"{head.decode('latin-1')!r}...)")
+            body = _read_exactly(sock, total, deadline)
+    except TimeoutError:
+        raise ClusterError(f"{address}: no Dask scheduler answered within {timeout_s:g} s") from None
+    except OSError as exc:
+        raise ClusterError(f"cannot reach the scheduler at {address}: {exc.strerror or exc}") from None
+    (n_frames,) = struct.unpack_from("<Q", body)
+    lengths = struct.unpack_from(f"<{n_frames}Q", body, 8) if 0 < n_frames <= (total - 8) // 8 else None
+    if lengths is None or 8 * (1 + n_frames) + sum(lengths) != total:
+        raise ClusterError(f"{address} answers, but not as a Dask scheduler (its greeting is not Dask's)")
 
 
 @contextmanager
@@ -54,6 +125,9 @@ def open_client(
                           f"{threads_per_worker}")
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
         raise ConfigError(f"scheduler address: expected text such as tcp://host:8786, got {scheduler!r}")
+    timeout_s = check_timeout(timeout_s)
+    if scheduler is not None:
+        probe_scheduler(scheduler, timeout_s)
     cluster: Any = None
     try:
         if scheduler is None:
