@@ -156,7 +156,8 @@ def test_overwrite_deletes_only_the_runs_own_files(tmp_path: Path) -> None:
     (tmp_path / "run" / "eval_exact.json").write_text("{}")
     RunWriter(tmp_path / "run", {}, {}, mode="overwrite").close()
     left = sorted(p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*"))
-    assert left == ["config.json", "matches", "matches/README.md", "meta.json", "notes.txt", "timings.json"]
+    assert left == ["config.json", "matches", "matches/README.md", "meta.json", "notes.txt", "timings.json",
+                    "writer.lock"]  # the lock is never deleted (a new one would not exclude its holder)
 
 
 def test_nothing_outside_the_run_is_read_or_written_through_a_link(tmp_path: Path) -> None:
@@ -206,6 +207,7 @@ def test_reconcile_replays_a_committed_frame_and_drops_an_uncommitted_one(tmp_pa
         w.add(3, 3.0, "loop_detected", 1, 0.9, 0.2, True, {"total": 1.0}, {"n": 3},
               similarity=np.full(3, 0.25, np.float32), commit=killed)
     assert (tmp_path / "run" / "pending.json").exists()
+    w.release()  # the process died: its lock went with it
     replay = RunWriter(tmp_path / "run", {}, {}, mode="resume")
     assert replay.reconcile(4) == 4  # the map committed frame 3: its row is written
     replay.close()
@@ -223,8 +225,10 @@ def test_reconcile_replays_a_committed_frame_and_drops_an_uncommitted_one(tmp_pa
                    similarity=np.zeros(i, np.float32))
         w2.add(2, 2.0, "no_db_results", -1, math.nan, math.nan, False, {"total": 1.0},
                similarity=np.zeros(2, np.float32), commit=killed)
+    w2.release()  # the process died
     dropped = RunWriter(tmp_path / "run2", {}, {}, mode="resume")
     assert dropped.reconcile(2) == 2  # not committed: frame 2 is done again
+    dropped.release()
     with pytest.raises(DatasetError, match="the map holds 5 frames but decisions.csv has 2"):
         RunWriter(tmp_path / "run2", {}, {}, mode="resume").reconcile(5)
 
@@ -240,3 +244,23 @@ def test_similarity_rows_make_the_matrix(tmp_path: Path) -> None:
     assert sim.shape == (4, 4) and sim[3].tolist() == [1.0, 2.0, 3.0, 0.0] and np.all(np.triu(sim) == 0)
     with pytest.raises(InputError, match="similarity rows need frames 0, 1, 2"):
         RunWriter(tmp_path / "r2", {}, {}).add(5, 0.0, "x", -1, 0, 0, False, {}, similarity=np.zeros(5))
+
+
+def test_a_second_writer_of_one_run_is_refused_before_it_writes(tmp_path: Path) -> None:
+    """Two ``--resume`` of one run at once: the second is refused in one line and writes
+    nothing (it had appended a similarity row and pending.json, issue 34); once the first
+    lets go (closed, failed or dropped), the run resumes."""
+    first = _write(tmp_path / "run", n=4, close=False)
+    before = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+    for mode in ("resume", "overwrite"):
+        with pytest.raises(DatasetError, match="another stablecues process is writing this run") as err:
+            RunWriter(tmp_path / "run", {"preset": "bow"}, {"dataset": "/data/x"}, stages=STAGES, mode=mode)
+        assert "\n" not in str(err.value)
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == before
+    first.release()  # a failed run lets go at once
+    second = RunWriter(tmp_path / "run", {"preset": "bow"}, {"dataset": "/data/x"}, mode="resume")
+    assert second.next_frame == 4
+    del second  # dropped without close, as a killed process
+    third = RunWriter(tmp_path / "run", {"preset": "bow"}, {"dataset": "/data/x"}, mode="resume")
+    third.close()
+    assert load_run(tmp_path / "run").complete and (tmp_path / "run" / "writer.lock").exists()

@@ -199,6 +199,9 @@ def run_dataset(
         _process(dataset, detector, writer, deferred, range(start, n), decisions, progress, preset_name,
                  observers)
         saved = _match_pictures(dataset, detector, writer, decisions, pictures)
+    except BaseException:
+        writer.release()  # the run can be resumed at once, by this process or another
+        raise
     finally:
         detector.close()
     writer.close()

@@ -18,6 +18,8 @@ Files of a run directory::
     pending.json     while a frame is being written: its decision, journalled before the
                      caller's own commit (the detector's map), replayed or dropped on resume
     timings.json     {stage: {mean, std, min, max, count}} in ms, written on close
+    writer.lock      held (flock) by the one process writing the run: a second writer (two
+                     ``--resume`` of one run at once) is refused before it writes anything
     matches/*.png    optional match pictures of sample loops
     eval_<protocol>.json   written by ``stablecues eval``
 
@@ -32,8 +34,10 @@ replacing a run deletes only the files listed here.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as _dt
+import fcntl
 import io
 import json
 import logging
@@ -61,6 +65,7 @@ EXTRA = "extra.jsonl"
 SIMILARITY = "similarity.npy"
 SIMILARITY_ROWS = "similarity.rows"
 PENDING = "pending.json"
+LOCK = "writer.lock"
 CONFIG = "config.json"
 META = "meta.json"
 TIMINGS = "timings.json"
@@ -117,6 +122,23 @@ def _json_safe(value: Any) -> Any:
 def json_text(data: Mapping[str, Any]) -> str:
     """``data`` as strict JSON text (NaN and infinities as null), as :func:`write_json` writes it."""
     return json.dumps(_json_safe(data), indent=2, allow_nan=False) + "\n"
+
+
+def _lock_run(path: Path) -> int:
+    """An exclusive ``flock`` on the run folder's ``writer.lock`` (never through a link); the
+    descriptor. The lock file is never deleted: a new one would not exclude the holder."""
+    lock = path / LOCK
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | _NOFOLLOW, 0o644)
+    except OSError as exc:
+        raise DatasetError(f"{lock}: cannot open the run's lock ({exc.strerror or exc})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise DatasetError(f"{path}: another stablecues process is writing this run (it holds {LOCK}); "
+                           "wait for it to finish or stop it, then --resume") from None
+    return fd
 
 
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
@@ -223,6 +245,34 @@ class RunWriter:
             raise InputError(f"mode: expected 'new', 'overwrite' or 'resume', got {mode!r}")
         _check_out_dir(self.path, mode)
         self.path.mkdir(parents=True, exist_ok=True)
+        self._lock_fd = _lock_run(self.path)  # before anything is written or deleted
+        try:
+            self._open(config, meta, stages, mode)
+        except BaseException:
+            self._unlock()
+            raise
+
+    def release(self) -> None:
+        """Let go of the run folder without completing the run (a run that failed): another
+        process may resume it at once. :meth:`close` releases it too."""
+        self._unlock()
+
+    def __del__(self) -> None:  # a writer dropped without close(), as a killed process would
+        self._unlock()
+
+    def _unlock(self) -> None:
+        if getattr(self, "_lock_fd", -1) >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self._lock_fd)
+            self._lock_fd = -1
+
+    def _open(
+        self,
+        config: Mapping[str, Any],
+        meta: Mapping[str, Any],
+        stages: Sequence[str] | None,
+        mode: Literal["new", "overwrite", "resume"],
+    ) -> None:
         if mode == "overwrite":
             self._clear()  # links among the old run's files are removed, never followed
         for name in RUN_FILES:
@@ -599,6 +649,7 @@ class RunWriter:
         write_json(self.path / TIMINGS, timing_table(arrays))
         self.meta.update({"finished": _now(), "frames_written": self._rows, "complete": True})
         write_json(self.path / META, self.meta)
+        self._unlock()
 
     def __enter__(self) -> RunWriter:
         return self
