@@ -111,8 +111,10 @@ def test_a_torn_last_record_loses_that_entry_only(voc: Vocabulary, tmp_path: Pat
     data = log.read_bytes()
     rows, lost, note = read_log(log, _uuid(db_path), 5)
     assert [r.id for r in rows] == list(range(5, 13)) and not lost and note is None
-    end = HEADER_SIZE + sum(len(entrylog.encode(r)) for r in rows)  # stale records follow
-    assert len(data) > end
+    end = HEADER_SIZE + sum(len(entrylog.encode(r)) for r in rows)
+    # stale records follow when the writer had started the log over by then (most runs; under
+    # load the first commit can come late and the log holds the live records alone)
+    assert len(data) >= end
     log.write_bytes(data[: end - 7])  # the last add was cut short by the kill
     with Database(voc, db_path) as db:
         assert len(db) == acked - 1
@@ -302,3 +304,32 @@ def test_a_link_or_folder_in_place_of_the_log_is_refused(
     log_path(db_path).rmdir()
     with Database(voc, db_path) as db:  # the entries were never touched
         assert len(db) == 2 and db.entry(1).meta == {"i": 1}
+
+
+def test_a_huge_sparse_log_is_mapped_not_read(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path
+) -> None:
+    """A 2 GiB sparse entry log (a header, then holes) was read whole on open (2.1 GB, issue 34):
+    it is mapped, scanned without allocating it, and the map opens with its entries."""
+    db_path = tmp_path / "db.sqlite"
+    with Database(voc, db_path) as db:
+        fill(db, voc, images[:3])
+    uuid = _uuid(db_path)
+    with log_path(db_path).open("wb") as fh:
+        fh.write(entrylog._MAGIC + uuid)
+        fh.truncate(2 << 30)
+    script = textwrap.dedent(f"""
+        import resource, sys
+        sys.path.insert(0, {str(Path(__file__).parents[1])!r})
+        from stablecues.database import Database
+        from stablecues.vocabulary import load_vocabulary
+        voc = load_vocabulary({str(tmp_path / "v.scv")!r}, levels_up=2)
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        with Database(voc, {str(db_path)!r}) as db:
+            print(len(db), (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) // 1024)
+        """)
+    save_vocabulary(voc, tmp_path / "v.scv")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    n, grown_mb = map(int, out.stdout.split())
+    assert n == 3 and grown_mb < 200, out.stdout

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import mmap
 import os
 import sqlite3
 import struct
@@ -61,6 +62,8 @@ _REC = struct.Struct("<4sII")
 _REC_MAGIC = b"SCE1"
 _BODY = struct.Struct("<qdqqIII")
 _MAX_RECORD = 1 << 31  # a record longer than this is not one this code wrote
+_WINDOW = 16 << 20  # bytes searched for a record's magic at a time after damage
+_SEEK_DATA: int | None = getattr(os, "SEEK_DATA", None)
 #: entries and bytes per SQLite transaction at most: larger ones grow SQLite's log past its
 #: 2 MB backstop (16 MB batches left a 16 MB log), smaller ones commit (and sync) more often
 _BATCH_ENTRIES = 64
@@ -124,7 +127,7 @@ class LogContents(NamedTuple):
     note: str | None
 
 
-def _record_at(data: bytes, view: memoryview, pos: int) -> tuple[Row, int] | str | None:
+def _record_at(data: mmap.mmap, view: memoryview, pos: int) -> tuple[Row, int] | str | None:
     """The record at ``pos``: (its row, the offset after it); a string naming what is wrong
     with a record whose CRC holds but whose contents do not (not one this code wrote); None
     where there is no intact record (torn, damaged, stale bytes or the end)."""
@@ -136,6 +139,8 @@ def _record_at(data: bytes, view: memoryview, pos: int) -> tuple[Row, int] | str
         return None
     body = view[pos + _REC.size: pos + _REC.size + length]
     if zlib.crc32(body) != crc:  # the CRC decides, not the magic: a damaged magic loses nothing
+        if length > _WINDOW:  # a garbage length: the pages read for its CRC are let go
+            _let_go(data, pos, pos + _REC.size + length)
         return None
     eid, ts, n, session, lb, lp, lm = _BODY.unpack_from(body)
     if _BODY.size + lb + lp + lm != length:
@@ -151,17 +156,78 @@ def _record_at(data: bytes, view: memoryview, pos: int) -> tuple[Row, int] | str
     return row, pos + _REC.size + length
 
 
-def _next_record(data: bytes, view: memoryview, pos: int, expected: int) -> tuple[Row, int] | None:
+def _next_record(
+    data: mmap.mmap, view: memoryview, pos: int, expected: int, fd: int
+) -> tuple[Row, int] | None:
     """The first intact record from ``pos`` on that carries ``expected`` or a later id (a live
-    record after damage), skipping stale ones: their ids are always smaller."""
-    while True:
-        pos = data.find(_REC_MAGIC, pos)
-        if pos < 0:
-            return None
-        found = _record_at(data, view, pos)
+    record after damage), skipping stale ones: their ids are always smaller. Holes of a sparse
+    file are skipped (``SEEK_DATA``) and the pages searched are let go a window at a time, so a
+    huge or sparse log costs neither memory nor time for what it does not hold."""
+    while pos < len(data):
+        if _SEEK_DATA is not None:
+            try:
+                pos = os.lseek(fd, pos, _SEEK_DATA)  # the next byte that is not in a hole
+            except OSError:
+                return None  # nothing but holes after pos
+        end = min(pos + _WINDOW, len(data))
+        hit = data.find(_REC_MAGIC, pos, min(end + len(_REC_MAGIC) - 1, len(data)))
+        if hit < 0:
+            _let_go(data, pos, end)
+            pos = end
+            continue
+        found = _record_at(data, view, hit)
         if isinstance(found, tuple) and found[0].id >= expected:
             return found
-        pos += 1
+        pos = hit + 1
+    return None
+
+
+def _let_go(data: mmap.mmap, start: int, end: int) -> None:
+    """Drop the mapped pages of ``[start, end)`` from this process (they stay in the page cache)."""
+    first = start - start % mmap.PAGESIZE
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        data.madvise(mmap.MADV_DONTNEED, first, end - first)
+
+
+def _scan(
+    path: Path, data: mmap.mmap, fd: int, uuid: bytes, first_id: int
+) -> tuple[list[Row], list[int], list[str], str | None]:
+    """:func:`read_log`'s walk over the mapped file: (rows, lost ids, damage notes, a note on
+    a torn or damaged last record)."""
+    if data[: len(_MAGIC)] != _MAGIC:
+        raise DatabaseError(f"{path}: not a stablecues entry log (bad header)")
+    if data[len(_MAGIC):HEADER_SIZE] != uuid:
+        raise DatabaseError(f"{path}: entry log of another database (its id differs)")
+    rows: list[Row] = []
+    lost: list[int] = []
+    damage: list[str] = []
+    last = None
+    pos, expected = HEADER_SIZE, first_id
+    view = memoryview(data)
+    try:
+        while pos < len(data):
+            found = _record_at(data, view, pos)
+            if not isinstance(found, tuple):
+                nxt = _next_record(data, view, pos + 1, expected, fd)
+                if nxt is None:  # the end of what was written last (a torn record, stale bytes)
+                    if pos + _REC.size + 8 <= len(data) and int.from_bytes(
+                            data[pos + _REC.size: pos + _REC.size + 8], "little", signed=True) == expected:
+                        last = (f"the last record (entry {expected}) is torn or damaged and not recovered "
+                                "(a kill while it was written, never acknowledged, or damage)")
+                    break
+                damage.append(found or f"damaged record at byte {pos}")
+                found = nxt
+            row, end = found
+            if row.id < expected:  # already in the database (or a stale record)
+                pos = end
+                continue
+            if row.id > expected:  # records lost to damage before this one
+                lost.extend(range(expected, row.id))
+            rows.append(row)
+            expected, pos = row.id + 1, end
+    finally:
+        view.release()
+    return rows, lost, damage, last
 
 
 def read_log(path: Path, uuid: bytes, first_id: int) -> LogContents:
@@ -174,37 +240,15 @@ def read_log(path: Path, uuid: bytes, first_id: int) -> LogContents:
     recovered and only the ids in between are lost. Where no later record follows, what was
     there is the torn last record or the stale bytes behind the live ones: nothing is lost.
     """
-    data = path.read_bytes()  # the allocation is the file's own size
-    if len(data) < HEADER_SIZE or data[: len(_MAGIC)] != _MAGIC:
-        raise DatabaseError(f"{path}: not a stablecues entry log (bad header)")
-    if data[len(_MAGIC):HEADER_SIZE] != uuid:
-        raise DatabaseError(f"{path}: entry log of another database (its id differs)")
-    rows: list[Row] = []
-    lost: list[int] = []
-    damage: list[str] = []
-    last = None
-    pos, expected = HEADER_SIZE, first_id
-    view = memoryview(data)
-    while pos < len(data):
-        found = _record_at(data, view, pos)
-        if not isinstance(found, tuple):
-            nxt = _next_record(data, view, pos + 1, expected)
-            if nxt is None:  # the end of what was written last (a torn record, stale bytes)
-                if pos + _REC.size + 8 <= len(data) and int.from_bytes(
-                        data[pos + _REC.size: pos + _REC.size + 8], "little", signed=True) == expected:
-                    last = (f"the last record (entry {expected}) is torn or damaged and not recovered "
-                            "(a kill while it was written, never acknowledged, or damage)")
-                break
-            damage.append(found or f"damaged record at byte {pos}")
-            found = nxt
-        row, end = found
-        if row.id < expected:  # already in the database (or a stale record)
-            pos = end
-            continue
-        if row.id > expected:  # records lost to damage before this one
-            lost.extend(range(expected, row.id))
-        rows.append(row)
-        expected, pos = row.id + 1, end
+    try:
+        with path.open("rb") as fh:
+            if os.fstat(fh.fileno()).st_size < HEADER_SIZE:
+                raise DatabaseError(f"{path}: not a stablecues entry log (bad header)")
+            # mapped, not read: a sparse or huge file costs no memory until a record is taken
+            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                rows, lost, damage, last = _scan(path, data, fh.fileno(), uuid, first_id)
+    except OSError as exc:
+        raise DatabaseError(f"{path}: cannot read the entry log ({exc.strerror or exc})") from None
     note = None
     if lost:
         shown = ", ".join(map(str, lost[:10])) + (", ..." if len(lost) > 10 else "")
