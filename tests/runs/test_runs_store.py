@@ -264,3 +264,49 @@ def test_a_second_writer_of_one_run_is_refused_before_it_writes(tmp_path: Path) 
     third = RunWriter(tmp_path / "run", {"preset": "bow"}, {"dataset": "/data/x"}, mode="resume")
     third.close()
     assert load_run(tmp_path / "run").complete and (tmp_path / "run" / "writer.lock").exists()
+
+
+def test_malformed_run_folders_are_one_line_through_the_commands(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """extra.jsonl lines that are not records of ours, frames out of range in decisions.csv,
+    and a meta.json whose "complete" is not true: `eval`, `report` and `results` answered with
+    tracebacks (issue 34); each is one line naming the file and line."""
+    from stablecues.cli.main import main
+    from stablecues.groundtruth import save_ground_truth
+
+    gt = save_ground_truth(tmp_path / "gt.npy", np.zeros((6, 6), bool))
+    deep = "[" * 200_000 + "]" * 200_000
+    extras = {
+        "list": "[1, 2]", "string": '"frame"', "frame_text": '{"frame": "abc"}',
+        "frame_nan": '{"frame": NaN}', "frame_huge": '{"frame": 1e999}',
+        "results": '{"frame": 2, "results": [1, 2, 3]}',
+        "scores": '{"frame": 2, "results": [[1, "x"]]}', "deep": '{"frame": 2, "results": ' + deep + "}",
+    }
+    for name, line in extras.items():
+        run = tmp_path / name
+        _write(run)
+        (run / "extra.jsonl").write_text(line + "\n" + '{"frame": 3}\n')
+        with pytest.raises(DatasetError, match=r"extra\.jsonl: line 1") as err:
+            load_run(run).extra()
+        assert "\n" not in str(err.value)
+        for argv in (["eval", str(run), "--gt", str(gt)], ["report", str(run), "--out", str(tmp_path / "r")]):
+            assert main(argv) == 1, (name, argv)
+            out = capsys.readouterr().err.strip()
+            assert out.count("\n") == 0 and "extra.jsonl" in out, (name, argv, out)
+    for frame in ("1180591620717411303424", "-5"):  # 2**70, and below 0
+        run = tmp_path / f"frame{frame}"
+        _write(run)
+        lines = (run / "decisions.csv").read_text().splitlines()
+        lines[1] = frame + lines[1][lines[1].index(","):]
+        (run / "decisions.csv").write_text("\n".join(lines) + "\n")
+        for argv in (["eval", str(run), "--gt", str(gt)], ["results", str(run)]):
+            assert main(argv) == 1
+            out = capsys.readouterr().err.strip()
+            assert out.count("\n") == 0 and "decisions.csv: line 2" in out, (frame, out)
+    run = tmp_path / "unfinished"
+    _write(run)
+    meta = json.loads((run / "meta.json").read_text())
+    for value in ("no", 1, "true"):
+        (run / "meta.json").write_text(json.dumps({**meta, "complete": value}))
+        assert not load_run(run).complete

@@ -780,7 +780,7 @@ class Run:
     @property
     def complete(self) -> bool:
         """Whether the run was closed properly."""
-        return bool(self.meta.get("complete", False))
+        return self.meta.get("complete", False) is True  # "no", 1, "true": not a completed run
 
     @property
     def similarity(self) -> np.ndarray | None:
@@ -828,11 +828,14 @@ class Run:
         lines = read_text(p, "per-frame extras").splitlines()
         for lineno, line in enumerate(lines, 1):
             try:
-                out.append(json.loads(line))
+                value = json.loads(line)
             except json.JSONDecodeError:
                 if lineno == len(lines):  # the partial last line of a killed run
                     break
                 raise DatasetError(f"{p}: line {lineno} is not valid JSON") from None
+            except RecursionError:
+                raise DatasetError(f"{p}: line {lineno} is nested too deeply") from None
+            out.append(_checked_extra(value, p, lineno))
         return out
 
     def timings(self) -> dict[str, dict[str, Any]]:
@@ -856,6 +859,44 @@ class Run:
     def evaluations(self) -> dict[str, dict[str, Any]]:
         """The ``eval_*.json`` files of the run: file stem -> contents."""
         return {p.stem: read_json(p, "evaluation") for p in sorted(self.path.glob("eval_*.json"))}
+
+
+#: the largest frame index a run may hold (exact in float64, and in every int column)
+MAX_FRAME = 2**53
+
+#: the lists of an ``extra.jsonl`` record that the loss funnel reads, and how long each item is
+_EXTRA_LISTS = {"results": 2, "islands": 4, "checked": 3}
+
+
+def _whole(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and -1 <= value <= MAX_FRAME
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _checked_extra(value: object, path: Path, lineno: int) -> dict[str, Any]:
+    """One ``extra.jsonl`` record, checked for what readers take from it: an object whose
+    ``frame`` is a whole number in range and whose ``results`` / ``islands`` / ``checked`` are
+    lists of lists that start with a frame (and hold numbers where a score is read)."""
+    where = f"{path}: line {lineno}"
+    if not isinstance(value, dict):
+        raise DatasetError(f"{where}: expected a JSON object, got {type(value).__name__}")
+    frame = value.get("frame")
+    if not _whole(frame) or frame < 0:  # type: ignore[operator]
+        raise DatasetError(f"{where}: 'frame' must be a whole number in 0..{MAX_FRAME}, got {frame!r:.40}")
+    for key, least in _EXTRA_LISTS.items():
+        items = value.get(key)
+        if items is None:
+            continue
+        if not isinstance(items, list) or not all(
+                isinstance(it, list) and len(it) >= least and _whole(it[0]) for it in items):
+            raise DatasetError(f"{where}: '{key}' must be a list of lists of at least {least} values "
+                               "starting with a frame")
+        if key in ("results", "islands") and not all(all(_number(v) for v in it) for it in items):
+            raise DatasetError(f"{where}: '{key}' must hold numbers only")
+    return value
 
 
 def load_run(path: str | Path) -> Run:
@@ -980,8 +1021,11 @@ def _parse_rows(decisions: Path, lines: list[str], width: int) -> _Rows:
                 raise ValueError(parts[6])
             rows.accepted[k] = parts[6] == "1"
             rows.stage_ms[:, k] = [float(v) for v in parts[7:]]
-        except ValueError as exc:
+        except (ValueError, OverflowError) as exc:  # 2**70 does not fit an int64 frame
             raise DatasetError(f"{decisions}: line {k + 2} has a malformed value ({exc})") from None
+    if rows.frames.size and (rows.frames.min() < 0 or rows.frames.max() > MAX_FRAME):
+        k = int(np.flatnonzero((rows.frames < 0) | (rows.frames > MAX_FRAME))[0])
+        raise DatasetError(f"{decisions}: line {k + 2}: frame {rows.frames[k]} is not in 0..{MAX_FRAME}")
     return rows
 
 
