@@ -148,8 +148,12 @@ def dask_client(
             yield client
         return
     from ..distributed.cluster import probe_scheduler
+    from ..errors import ClusterError
 
-    probe_scheduler(address, float(timeout.removesuffix("s")))  # silence or another service: one line
+    try:  # silence or another service at the address: one line, within the timeout
+        probe_scheduler(address, float(timeout.removesuffix("s")))
+    except ClusterError as exc:
+        raise ConfigError(f"--scheduler {address}: cannot connect ({exc})") from None
     try:
         client = Client(address, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:

@@ -194,7 +194,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
         return Vocabulary(
             header["k"], header["L"], arrays["parents"], arrays["descriptors"], arrays["weights"],
             Weighting(header["weighting"]), Scoring(header["scoring"]), levels_up=up,
-            fingerprint=header["fingerprint"], children=arrays["children"],
+            children=arrays["children"], claimed_fingerprint=header["fingerprint"], source=str(path),
         )
     except VocabularyError as exc:
         raise VocabularyError(f"{path}: {str(exc).removeprefix('vocabulary: ')}") from exc

@@ -88,6 +88,8 @@ class Vocabulary:
         levels_up: int | None = None,
         fingerprint: str | None = None,
         children: np.ndarray | None = None,
+        claimed_fingerprint: str | None = None,
+        source: str | None = None,
     ) -> None:
         check_header(k, levels, levels_up)
         self.k = int(k)
@@ -111,6 +113,9 @@ class Vocabulary:
         self.levels_up = max(self.levels - 2, 0) if levels_up is None else int(levels_up)
         self._di_cache: dict[int, np.ndarray] = {}
         self._fingerprint = fingerprint
+        # a file's recorded fingerprint, checked against the content when first asked for
+        self._claimed = claimed_fingerprint if fingerprint is None else None
+        self._source = source or "vocabulary"
         self._engine_request = "auto"
         self._engine: str | None = None
 
@@ -193,7 +198,11 @@ class Vocabulary:
                 h.update(f" {self.descriptor_kind.kind} {self.descriptor_kind.size}".encode())
             for arr in (self.parents, self.descriptors, self.weights):
                 h.update(np.ascontiguousarray(arr).tobytes())
-            self._fingerprint = h.hexdigest()
+            digest = h.hexdigest()
+            if self._claimed is not None and digest != self._claimed:
+                raise VocabularyError(f"{self._source}: the vocabulary's content does not match the "
+                                      "fingerprint its header records (a modified or corrupt file)")
+            self._fingerprint = digest
         return self._fingerprint
 
     @property
