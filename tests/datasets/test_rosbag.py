@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import pickle
 import shutil
+import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -439,6 +440,17 @@ def test_bad_image_messages(colour: np.ndarray) -> None:
         image_from_compressed(
             ts.types[COMPRESSED](header=bad.header, format="16UC1; compressedDepth png", data=bad.data), "t"
         )
+    # a small JPEG whose header claims 65500 x 1000: libjpeg fills the rest with grey
+    small = compressed_message(ts, 1, colour[:16, :16], "jpeg", False)
+    claims = small.data.copy()
+    sof = bytes(claims).find(b"\xff\xc0")
+    claims[sof + 5: sof + 9] = np.frombuffer(struct.pack(">HH", 1000, 65500), np.uint8)
+    with pytest.raises(ImageError, match="a corrupt JPEG image; Corrupt JPEG data: premature end"):
+        image_from_compressed(ts.types[COMPRESSED](header=small.header, format="jpeg", data=claims), "t")
+    # YUV 4:2:2 with an odd width: cv2.error before
+    odd = raw_message(ts, 1, np.zeros((4, 5, 2), np.uint8), "uyvy", False)
+    with pytest.raises(ImageError, match="uyvy image stores pixels in pairs; .* even, found 5"):
+        image_from_raw(odd, "t")
 
 
 def vars_of(msg: Any) -> dict[str, Any]:

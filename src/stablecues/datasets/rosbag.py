@@ -106,6 +106,9 @@ _ENCODINGS: dict[str, tuple[type[np.unsignedinteger[Any]], int, int | None]] = {
     "yuyv": (np.uint8, 2, cv2.COLOR_YUV2BGR_YUY2),
 }
 
+# YUV 4:2:2 conversions: two pixels share their chroma, so a row holds an even number of them
+_PAIRED_PIXELS = (cv2.COLOR_YUV2BGR_UYVY, cv2.COLOR_YUV2BGR_YUY2)
+
 # topic name parts that tell the two cameras of a stereo pair apart (left first)
 _PAIR_TOKENS = (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("0", "1"), ("1", "2"))
 
@@ -262,6 +265,9 @@ def image_from_raw(msg: Any, where: str, *, grey: bool = False) -> np.ndarray:
     dtype, channels, conversion = spec
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     _check_size(where, width, height)
+    if conversion in _PAIRED_PIXELS and width % 2:
+        raise ImageError(f"{where}: a {encoding} image stores pixels in pairs; its width must be even, "
+                         f"found {width}")
     row = width * channels * np.dtype(dtype).itemsize
     data = np.asarray(msg.data, dtype=np.uint8).ravel()
     if step < row or data.size < step * height:
@@ -307,8 +313,11 @@ def image_from_compressed(msg: Any, where: str, *, grey: bool = False) -> np.nda
             image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         except cv2.error:
             image = None
-    if image is None or image.dtype not in (np.uint8, np.uint16):
-        why = f"; {printed.lines[0][:120]}" if printed.lines else ""
+    # a truncated image decodes to grey fill after the data ends (a 589-byte JPEG whose header
+    # claims 65500 x 1000 gave a 65-megapixel frame): libjpeg says so, and the frame is refused
+    cut = [line for line in printed.lines if "premature end" in line.lower()]
+    if image is None or image.dtype not in (np.uint8, np.uint16) or cut:
+        why = f"; {(cut or printed.lines)[0][:120]}" if printed.lines else ""
         raise ImageError(f"{where}: a corrupt {kind} image{why}")
     return _as_bgr8(image, grey)
 
