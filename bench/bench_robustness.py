@@ -20,6 +20,13 @@ other                anything else (another exit status, several lines)
 ==================== ==========================================================================
 
 Writes ``bench/results/robustness.json``. ``python bench/bench_robustness.py [-k TEXT]``.
+
+``--entrylog`` (a section of its own, about a minute): a map whose last 30 acknowledged adds are
+in its entry log only (the writer killed before SQLite took them, as
+``tests/database/test_database_entrylog.py`` does it) has one byte of the log flipped at a time,
+at offsets spread over every record (its magic, length, CRC, id, body and metadata bytes, and
+a stride through its blobs), and is reopened each time: how many of the 30 acknowledged
+entries come back, and how many ids the damage cost (the goal: all but the damaged record).
 """
 
 from __future__ import annotations
@@ -127,11 +134,82 @@ def _judge(
     return "other", f"exit {rc}, {len(lines)} lines on stderr"
 
 
+def entrylog_damage(stride: int = 997) -> dict[str, Any]:
+    """The ``--entrylog`` section (see the module's docstring)."""
+    sys.path.insert(0, str(REPO / "tests" / "database"))
+    from test_database_entrylog import _uuid, run_stuck_writer
+
+    from dbkit import make_images
+    from stablecues.database import Database, entrylog
+    from stablecues.database.entrylog import HEADER_SIZE, log_path, read_log
+    from stablecues.vocabulary import train_vocabulary
+
+    voc = train_vocabulary(make_images(), k=6, levels=4, seed=0, levels_up=2, progress=False)
+    work = Path(tempfile.mkdtemp(prefix="robust_elog_"))
+    try:
+        src = work / "src"
+        src.mkdir()
+        committed, stuck = 4, 30
+        acked = run_stuck_writer(voc, src, committed=committed, stuck=stuck)
+        db = src / "db.sqlite"
+        data = log_path(db).read_bytes()
+        rows = read_log(log_path(db), _uuid(db), committed).rows
+        sizes = [len(entrylog.encode(r)) for r in rows]
+        starts = [HEADER_SIZE + sum(sizes[:k]) for k in range(len(rows))]
+        offsets = []
+        for k, (start, size) in enumerate(zip(starts, sizes, strict=True)):
+            fixed = [0, 4, 8, 12, 20, 28, size - 1]  # magic, length, CRC, id, timestamp, n, meta
+            offsets += [(k, start + o) for o in sorted({*fixed, *range(40, size, stride)}) if o < size]
+        outcome = {"all_but_damaged": 0, "all": 0, "lost_more": 0, "error": 0}
+        worst: list[dict[str, Any]] = []
+        t0 = time.perf_counter()
+        for k, at in offsets:
+            case = work / "case"
+            shutil.copytree(src, case)
+            bad = bytearray(data)
+            bad[at] ^= 0x5A
+            log_path(case / "db.sqlite").write_bytes(bytes(bad))
+            try:
+                with Database(voc, case / "db.sqlite") as reopened:
+                    kept = set(int(i) for i in reopened.ids())
+            except Exception as exc:  # reported, not hidden
+                outcome["error"] += 1
+                worst.append({"record": k, "offset": at, "error": f"{type(exc).__name__}: {exc}"})
+                shutil.rmtree(case)
+                continue
+            lost = sorted(set(range(committed, acked)) - kept)
+            key = "all" if not lost else "all_but_damaged" if lost == [committed + k] else "lost_more"
+            outcome[key] += 1
+            if key == "lost_more":
+                worst.append({"record": k, "offset": at, "lost": lost})
+            shutil.rmtree(case)
+        return {"acknowledged_in_log": acked - committed, "records": len(rows), "bytes": len(data),
+                "damaged_offsets": len(offsets), "outcomes": outcome, "worst": worst[:10],
+                "wall_s": round(time.perf_counter() - t0, 1),
+                "offsets": "per record: its magic, length, CRC, id, timestamp, feature count and last "
+                           f"byte, and every {stride}th byte of its blobs"}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("-k", default="", help="only cases whose name contains this text")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "robustness.json")
+    parser.add_argument("--entrylog", action="store_true",
+                        help="run the entry-log damage sweep only, merged into --out")
     args = parser.parse_args()
+    if args.entrylog:
+        res = entrylog_damage()
+        doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
+        doc["entrylog_damage"] = res
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        o = res["outcomes"]
+        print(f"entry log, one byte flipped at {res['damaged_offsets']} offsets of {res['records']} records: "
+              f"{o['all']} lost nothing, {o['all_but_damaged']} lost the damaged record only, "
+              f"{o['lost_more']} lost more, {o['error']} did not open")
+        print(f"written: {args.out}")
+        return 0
     cases = [c for c in CASES if args.k in c.name]
     results = []
     t0 = time.perf_counter()
@@ -163,6 +241,7 @@ def main() -> int:
         "other": totals.get("other", 0),
         "by_area": _by_area(results),
     }
+    kept = json.loads(args.out.read_text()).get("entrylog_damage") if args.out.is_file() else None
     doc = {
         "what": "malformed inputs through the CLI, one child process each (bench/bench_robustness.py)",
         "conditions": {
@@ -177,6 +256,8 @@ def main() -> int:
         "summary": summary,
         "cases": results,
     }
+    if kept is not None:  # the --entrylog section's last result stays
+        doc["entrylog_damage"] = kept
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     print()

@@ -1526,3 +1526,114 @@ def _(d: Path) -> Setup:
     run = fake_run(d)
     scipy.io.savemat(d / "gt.mat", {"truth": loop_matrix(30).astype(float)})
     return Setup(["eval", str(run), "--gt", str(d / "gt.mat"), "--gt-variable", "GT"], "gt.mat")
+
+
+# ---------------------------------------------------------------------------------------------
+# issue 34: output paths, settings, run folders, vocabularies
+
+
+@case("outputs/vocab-convert-onto-a-symlink")
+def _(d: Path) -> Setup:
+    target = d / "precious.bin"
+    target.write_bytes(b"keep")
+    (d / "out.scv").symlink_to(target)
+    return Setup(["vocab", "convert", "default:xfeat", str(d / "out.scv")], "out.scv",
+                 check=all_of(not_changed(target, b"keep"),
+                              lambda f: None if (f / "out.scv").is_symlink() else "the link was replaced"))
+
+
+@case("outputs/eval-json-onto-a-link-to-a-descriptor")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    np.save(d / "gt.npy", loop_matrix(30))
+    (d / "e.json").symlink_to("/proc/self/fd/1")
+    return Setup(["eval", str(run), "--gt", str(d / "gt.npy"), "--json", str(d / "e.json")], "e.json",
+                 check=lambda f: None if (f / "e.json").is_symlink() else "the link was replaced")
+
+
+@case("outputs/results-json-into-a-folder")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    (d / "table").mkdir()
+    return Setup(["results", str(run), "--json", str(d / "table")], "table")
+
+
+@case("outputs/info-json-onto-a-device")
+def _(d: Path) -> Setup:
+    images(d / "frames", 3)
+    return Setup(["info", str(d / "frames"), "--json", "/dev/null"], "/dev/null")
+
+
+@case("outputs/run-rerun-through-a-symlink")
+def _(d: Path) -> Setup:
+    images(d / "frames", 3)
+    target = d / "precious.rrd"
+    target.write_bytes(b"keep")
+    (d / "rec.rrd").symlink_to(target)
+    return Setup(["run", str(d / "frames"), "--out", str(d / "run"), "--preset", "bow", "--rerun",
+                  str(d / "rec.rrd")], "rec.rrd", check=not_changed(target, b"keep"))
+
+
+@case("config/set-a-non-finite-number")
+def _(d: Path) -> Setup:
+    images(d / "frames", 3)
+    return Setup(["run", str(d / "frames"), "--out", str(d / "run"), "--set", "query.alpha=NaN"], "NaN")
+
+
+@case("config/sweep-a-million-cells")
+def _(d: Path) -> Setup:
+    images(d / "frames", 3)
+    vary = [x for k in range(10) for x in ("--vary", f"query.alpha=[0.1, 0.2, 0.3, {k}]")]
+    return Setup(["sweep", str(d / "frames"), "--out", str(d / "s"), "--serial", *vary], "--vary")
+
+
+@case("config/sweep-timeout-nan")
+def _(d: Path) -> Setup:
+    images(d / "frames", 3)
+    return Setup(["sweep", str(d / "frames"), "--out", str(d / "s"), "--timeout", "nan"], "--timeout")
+
+
+@case("runs/extra-line-is-a-list")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    (run / "extra.jsonl").write_text('[1, 2]\n{"frame": 3}\n')
+    np.save(d / "gt.npy", loop_matrix(30))
+    return Setup(["eval", str(run), "--gt", str(d / "gt.npy")], "extra.jsonl")
+
+
+@case("runs/extra-results-not-pairs")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    (run / "extra.jsonl").write_text('{"frame": 20, "results": [1, 2, 3]}\n{"frame": 21}\n')
+    np.save(d / "gt.npy", loop_matrix(30))
+    return Setup(["report", str(run), "--out", str(d / "r.html")], "extra.jsonl")
+
+
+@case("runs/decisions-frame-2-to-the-70")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    lines = (run / "decisions.csv").read_text().splitlines()
+    lines[1] = str(2**70) + lines[1][lines[1].index(","):]
+    (run / "decisions.csv").write_text("\n".join(lines) + "\n")
+    return Setup(["results", str(run)], "decisions.csv")
+
+
+@case("vocabulary/float-centroid-tampered-crc-fixed")
+def _(d: Path) -> Setup:
+    import struct
+    import zlib
+
+    from stablecues.vocabulary import default_vocabulary_path
+
+    raw = bytearray(default_vocabulary_path("xfeat").read_bytes())
+    _, version, hlen = struct.unpack_from("<8sII", raw)
+    header = json.loads(raw[16:16 + hlen])
+    start = 16 + hlen + (-(16 + hlen)) % 64
+    at = start + header["arrays"]["descriptors"]["offset"]
+    raw[at:at + 4] = struct.pack("<f", 3e38)
+    payload = bytes(raw[start:start + header["payload_bytes"]])
+    header["payload_crc32"] = zlib.crc32(payload)
+    text = json.dumps(header, sort_keys=True).encode()
+    head = struct.pack("<8sII", b"SCVOCAB\0", version, len(text)) + text
+    (d / "v.scv").write_bytes(head + b"\0" * ((-len(head)) % 64) + payload)
+    return Setup(["vocab", "info", str(d / "v.scv")], "v.scv")
