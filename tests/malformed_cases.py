@@ -1637,3 +1637,13 @@ def _(d: Path) -> Setup:
     head = struct.pack("<8sII", b"SCVOCAB\0", version, len(text)) + text
     (d / "v.scv").write_bytes(head + b"\0" * ((-len(head)) % 64) + payload)
     return Setup(["vocab", "info", str(d / "v.scv")], "v.scv")
+
+
+@case("outputs/report-onto-a-symlink")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    target = d / "precious.html"
+    target.write_bytes(b"keep")
+    (d / "r.html").symlink_to(target)
+    return Setup(["report", str(run), "--out", str(d / "r.html")], "r.html",
+                 check=not_changed(target, b"keep"))

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..errors import ConfigError, StableCuesError, reason
 from ..groundtruth import GroundTruth, fit_view, load_ground_truth
+from ..outputs import check_output, write_output
 from ..runs import Run
 from .evaluate import evaluate_run, evaluation_funnel, run_evaluations
 from .funnel import Funnel
@@ -284,7 +285,7 @@ def build_report(
     docs = [choose_evaluation(r, protocol, tolerance) for r in runs]
     _check_one_protocol(runs, docs)
     shown = [_analyse(r, d, gt_cache) for r, d in zip(runs, docs, strict=True)]
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    check_output(out_path, "report", make_folder=True)  # before any figure is drawn
     pictures = _Pictures(out_path)
     parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
@@ -302,7 +303,7 @@ def build_report(
         for k, (run, s) in enumerate(zip(runs, shown, strict=True), 1):
             parts += _run_section(k, run, s, pictures, max_loops)
     parts.append("</body></html>")
-    out_path.write_text("\n".join(parts), encoding="utf-8")
+    write_output(out_path, "\n".join(parts), "report")
     return out_path
 
 
