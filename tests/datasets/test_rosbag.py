@@ -621,3 +621,44 @@ def test_a_fifo_in_a_bag_folder_and_huge_metadata_are_refused_without_hanging(
         open_rosbag(folder)
     meta.write_text(text)
     assert len(open_rosbag(folder)) > 0  # the same folder, repaired, opens
+
+
+@pytest.mark.parametrize("definition, field", [
+    ("std_msgs/Header header\nuint32 height\nuint32 width\nuint8 is_bigendian\nuint32 step\nuint8[] data\n",
+     "'encoding'"),
+    ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\n"
+     "float64[] data\n", "'data'"),
+    ("uint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n",
+     "header.stamp"),
+])
+def test_a_bag_defining_image_its_own_way_is_one_line(
+    definition: str, field: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bag carries its own message definitions: an Image without `encoding` or `header`, or
+    with `float64[] data`, gave AttributeErrors or garbage pixels in `info` and `run` (issue 34);
+    each is one line naming the topic and the field."""
+    from rosbags.typesys import get_types_from_msg
+
+    from stablecues.cli.main import main
+
+    base = get_typestore(Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.EMPTY)
+    for name in ("builtin_interfaces/msg/Time", "std_msgs/msg/Header"):
+        ts.register({name: base.fielddefs[name]})
+    ts.register(get_types_from_msg(definition, IMAGE))
+    bag = tmp_path / "bag"
+    fields = {"height": 4, "width": 4, "is_bigendian": 0, "step": 4}
+    if "string encoding" in definition:
+        fields["encoding"] = "mono8"
+    if "std_msgs/Header" in definition:
+        fields["header"] = ts.types["std_msgs/msg/Header"](
+            stamp=ts.types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="cam")
+    with Writer2(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/cam/image_raw", IMAGE, typestore=ts)
+        for i in range(3):
+            data = np.zeros(16, np.float64 if "float64[]" in definition else np.uint8)
+            w.write(conn, (i + 1) * 10**9, ts.serialize_cdr(ts.types[IMAGE](**fields, data=data), IMAGE))
+    for argv in (["info", str(bag)], ["run", str(bag), "--out", str(tmp_path / "run"), "--preset", "bow"]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "/cam/image_raw" in err and field in err, err

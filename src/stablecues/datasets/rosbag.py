@@ -37,7 +37,7 @@ import math
 import stat
 import threading
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -199,12 +199,61 @@ def _messages(
 
 def _deserialize(reader: Any, path: Path, conn: Any, raw: bytes, bag_ns: int) -> Any:
     try:
-        return reader.deserialize(raw, conn.msgtype)
+        msg = reader.deserialize(raw, conn.msgtype)
     except Exception as exc:  # a message shorter than its type or of another layout
         raise DatasetError(
             f"{path}: {conn.topic} message at bag time {bag_ns} ns is not a valid {conn.msgtype} "
             f"({reason(exc)})"
         ) from None
+    _check_fields(msg, path, conn)
+    return msg
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+def _is_bytes(v: Any) -> bool:
+    return isinstance(v, np.ndarray) and v.dtype == np.uint8 and v.ndim == 1
+
+
+def _is_floats(v: Any) -> bool:
+    return isinstance(v, np.ndarray | list | tuple) and all(
+        isinstance(x, float | int | np.floating | np.integer) and not isinstance(x, bool) for x in v)
+
+
+#: the fields each message type the reader takes must carry, and what each must be: a bag may
+#: carry its own definition of a type (ROS 1, MCAP and db3 all store them), and one that drops
+#: a field or changes its type would otherwise fail deep inside the reader
+_INT, _TEXT = (_is_int, "an integer"), (lambda v: isinstance(v, str), "text")
+_FIELDS: dict[str, tuple[tuple[str, Callable[[Any], bool], str], ...]] = {
+    IMAGE: (("height", *_INT), ("width", *_INT), ("step", *_INT), ("encoding", *_TEXT),
+            ("is_bigendian", *_INT), ("data", _is_bytes, "uint8[]")),
+    COMPRESSED: (("format", *_TEXT), ("data", _is_bytes, "uint8[]")),
+    CAMERA_INFO: (("height", *_INT), ("width", *_INT), ("distortion_model", *_TEXT),
+                  ("d", _is_floats, "float64[]"), ("k", _is_floats, "float64[9]"),
+                  ("r", _is_floats, "float64[9]"), ("p", _is_floats, "float64[12]")),
+}
+
+
+def _check_fields(msg: Any, path: Path, conn: Any) -> None:
+    """Refuse, in one line naming the topic and the field, a message of a type the reader takes
+    whose (bag-defined) layout lacks a field it reads or gives it another type."""
+    fields = _FIELDS.get(conn.msgtype)
+    if fields is None:
+        return
+    where = f"{path}: {conn.topic}: {conn.msgtype}"
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    if not (_is_int(getattr(stamp, "sec", None)) and _is_int(getattr(stamp, "nanosec", None))):
+        raise DatasetError(f"{where} has no header.stamp of whole seconds and nanoseconds (the bag's "
+                           "definition of the type differs from ROS's)")
+    for name, ok, kind in fields:
+        value = getattr(msg, name, None)
+        if value is None and len(name) == 1:  # ROS 1's CameraInfo: D, K, R, P
+            value = getattr(msg, name.upper(), None)
+        if not ok(value):
+            raise DatasetError(f"{where}: field {name!r} is missing or not {kind} (the bag's definition of "
+                               "the type differs from ROS's)")
 
 
 def _stamp_ns(msg: Any) -> int:
