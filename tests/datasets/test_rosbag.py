@@ -662,3 +662,23 @@ def test_a_bag_defining_image_its_own_way_is_one_line(
         assert main(argv) == 1
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "/cam/image_raw" in err and field in err, err
+
+
+@pytest.mark.parametrize("value", ["'abc'", "1.5"])  # NULL: this schema refuses it
+def test_a_db3_message_time_that_is_not_an_integer_is_one_line(
+    value: str, tmp_path: Path, bags: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SQLite keeps whatever a column is given: a message whose bag time is text or a
+    fraction made `info` a TypeError traceback (issue 34)."""
+    import sqlite3
+
+    from stablecues.cli.main import main
+
+    bag = shutil.copytree(bags["sqlite3"], tmp_path / "bag")
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as con:
+        con.execute(f"UPDATE messages SET timestamp = {value} WHERE id = 2")
+    con.close()
+    assert main(["info", str(bag)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "bag time is" in err and "not whole nanoseconds" in err, err

@@ -192,7 +192,13 @@ def _messages(
 ) -> Iterator[tuple[Any, int, bytes]]:
     """``reader.messages`` with its errors (a truncated chunk, a bad record) as DatasetError."""
     try:
-        yield from reader.messages(connections, start=start, stop=stop)
+        for conn, t, raw in reader.messages(connections, start=start, stop=stop):
+            if not isinstance(t, int) or isinstance(t, bool):  # a .db3's timestamp column is free-form
+                raise DatasetError(f"{path}: {conn.topic}: a message's bag time is {t!r:.40}, not whole "
+                                   "nanoseconds (a corrupt bag)")
+            yield conn, t, raw
+    except DatasetError:
+        raise
     except Exception as exc:  # rosbags raises assorted errors on corrupt records
         raise DatasetError(f"{path}: a corrupt or truncated ROS bag ({reason(exc)})") from None
 
