@@ -1647,3 +1647,12 @@ def _(d: Path) -> Setup:
     (d / "r.html").symlink_to(target)
     return Setup(["report", str(run), "--out", str(d / "r.html")], "r.html",
                  check=not_changed(target, b"keep"))
+
+
+@case("groundtruth/sparse-npy-60000-square")
+def _(d: Path) -> Setup:
+    run = fake_run(d)
+    gt = npy_with_header(d / "gt.npy", "{'descr': '|b1', 'fortran_order': False, 'shape': (60000, 60000), }")
+    with gt.open("r+b") as fh:  # a sparse file of the size the header claims: nothing on disk
+        fh.truncate(fh.seek(0, 2) + 60000 * 60000)
+    return Setup(["eval", str(run), "--gt", str(gt)], "gt.npy")

@@ -251,6 +251,7 @@ def read_npy(
     objects: bool = False,
     mmap: bool = False,
     error: type[StableCuesError] = DatasetError,
+    max_side: int | None = None,
 ) -> np.ndarray:
     """Read a ``.npy`` file without trusting its header and without unpickling arbitrary objects.
 
@@ -261,6 +262,8 @@ def read_npy(
             arrays, lists, integers only); otherwise an object array is refused.
         mmap: memory-map a numeric array read-only instead of reading it.
         error: the error class to raise.
+        max_side: refuse, from the header and before anything is read, an array with a side
+            longer than this (a sparse file of the right size costs nothing on disk).
 
     Returns:
         The array (an object array only with ``objects=True``).
@@ -276,6 +279,9 @@ def read_npy(
     with p.open("rb") as fh:
         shape, fortran, dtype = _npy_header(fh, p, error)
         offset = fh.tell()
+        if max_side is not None and any(side > max_side for side in shape):
+            raise error(f"{p}: {what} of shape {shape} is larger than the {max_side} frames a side accepted "
+                        "(stablecues.limits)")
         if dtype.hasobject:
             if not objects:
                 raise error(f"{p}: {what}: expected a numeric array, found Python objects (a pickle)")

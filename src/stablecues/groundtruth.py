@@ -542,7 +542,7 @@ def _read_mat73(path: Path, variable: str | None) -> tuple[Any, str]:
 def _read_npy(path: Path) -> np.ndarray:
     """A .npy array, never unpickling arbitrary objects: an object array (the VPR-Bench table)
     goes through the restricted unpickler of :func:`stablecues.fileio.read_npy`."""
-    return read_npy(path, "ground truth", objects=True)
+    return read_npy(path, "ground truth", objects=True, max_side=MAX_LOOP_FRAMES)
 
 
 def _read_npz(path: Path, variable: str | None) -> tuple[Any, str]:
