@@ -270,7 +270,8 @@ _MEASURED_QUERY: dict[str, Any] = {"islands_verified": 5, "refine": 1, "temporal
 #: gave 0.93 / 0.79 / 0.38. One pair (``stablecues verify``) keeps the verification preset's gates.
 #: Loops under confidence 20 are refused (``min_confidence``): on every development set that left
 #: R@100P as it was and cut the false loops accepted (Gardens Point 63 / 74 / 80 -> 4 / 7 / 7,
-#: train_drives 111 -> 67); 25 and 30 cut more and lost loops (``at_min_confidence``).
+#: train_drives 111 -> 67); 25 also kept R@100P but refused 11 more true loops on left -> night,
+#: 30 lost R@100P (``at_min_confidence`` in learned.json).
 _LEARNED_STREAM: dict[str, Any] = {"ratio": 1.0, "max_distance": 256, "min_fundamental_ratio": 0.0}
 
 #: preset name -> (masking preset, verification preset, other overrides, one line of description)
