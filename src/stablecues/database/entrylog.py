@@ -34,6 +34,7 @@ replaced segment files are deleted only after the manifest that drops them is co
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import mmap
 import os
@@ -167,8 +168,10 @@ def _next_record(
         if _SEEK_DATA is not None:
             try:
                 pos = os.lseek(fd, pos, _SEEK_DATA)  # the next byte that is not in a hole
-            except OSError:
-                return None  # nothing but holes after pos
+            except OSError as exc:
+                if exc.errno == errno.ENXIO:
+                    return None  # nothing but holes after pos
+                # a file system that cannot tell holes: search every byte
         end = min(pos + _WINDOW, len(data))
         hit = data.find(_REC_MAGIC, pos, min(end + len(_REC_MAGIC) - 1, len(data)))
         if hit < 0:
