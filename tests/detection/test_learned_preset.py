@@ -17,6 +17,11 @@ def test_learned_preset_settings() -> None:
     cfg = preset("learned")
     assert cfg.features.name == "xfeat" and cfg.verification is not None
     assert cfg.verification.matcher == "mnn"
+    # every mutual match verified, loops ranked by inliers x the 8-frame sequence score, under 20 refused
+    v = cfg.verification
+    assert (v.ratio, v.max_distance, v.min_fundamental_ratio) == (1.0, 256, 0.0)
+    assert cfg.query.sequence == 8 and not cfg.query.sequence_rank and cfg.confidence == "sequence"
+    assert cfg.min_confidence == 20.0
     assert "XFeat" in describe_preset("learned")
     with pytest.raises(ConfigError, match="lighterglue"):
         preset("default", {"verification": {"matcher": "lighterglue"}})  # ORB features
