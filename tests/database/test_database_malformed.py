@@ -107,12 +107,14 @@ def test_stored_bow_that_is_not_sorted_words_of_the_vocabulary(
         with pytest.raises(DatabaseError, match="not sorted ids below") as err:
             db.entry(6)
         one_line(err.value, small_map)
-    # and when the index has to be rebuilt from the entries
+    # and when the index has to be rebuilt from the entries: the map opens without that entry's
+    # vector (named in a warning), and reading it stays one line
     for f in Path(str(small_map) + "-index").glob("seg-*.sci"):
         f.unlink()
-    with pytest.raises(DatabaseError, match="entry 6") as err:
-        Database(voc, small_map)
-    one_line(err.value, small_map)
+    with Database(voc, small_map) as db:
+        with pytest.raises(DatabaseError, match="entry 6") as err:
+            db.entry(6)
+        one_line(err.value, small_map)
 
 
 def hostile_blob(header: object) -> bytes:
@@ -207,3 +209,34 @@ def test_hostile_metadata(key: str, value: str, expected: str, small_map: Path, 
     with pytest.raises(DatabaseError, match=expected) as err:
         Database(voc, small_map)
     one_line(err.value, small_map)
+
+
+def test_a_map_without_segments_opens_past_one_corrupt_vector(
+    voc: Vocabulary, images: list[np.ndarray], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A small map (no sealed segments) with one corrupt BoW blob could not be opened at all
+    (issue 34, item 3): it opens, the entry is left out of every query and named in a warning,
+    reading it is one line, and removing it makes the map whole again."""
+    import logging
+
+    db_path = tmp_path / "db.sqlite"
+    with Database(voc, db_path) as db:
+        fill(db, voc, images[:10])
+        bow = db.entry(3).bow
+    with sqlite3.connect(db_path) as conn:
+        conn.execute("UPDATE entries SET bow = X'00112233' WHERE id = 3")
+    conn.close()
+    with caplog.at_level(logging.WARNING), Database(voc, db_path) as db:
+        assert len(db) == 10
+        hits = [r.entry_id for r in db.query(bow, max_results=10)]
+        assert hits and 3 not in hits
+        with pytest.raises(DatabaseError, match="entry 3: stored arrays are corrupt") as err:
+            db.entry(3)
+        assert "\n" not in str(err.value)
+        assert db.remove([3]) == 1
+    assert any("1 entry with a corrupt BoW vector left out of every query (entry 3" in r.getMessage()
+               for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), Database(voc, db_path) as db:
+        assert db.ids().tolist() == [0, 1, 2, 4, 5, 6, 7, 8, 9]
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]

@@ -1067,6 +1067,7 @@ def _load_segments(
     (what the index files would hold), one per block of entries; a memory database's vectors
     come from ``held`` (removed entries: none there, an empty vector)."""
     out: list[Segment] = []
+    damaged: list[str] = []
     for a in range(lo, hi, _LOAD_BLOCK):
         b = min(a + _LOAD_BLOCK, hi)
         rows = sql.rows(f"SELECT id, bow, {schema.session_sql} FROM entries WHERE id >= ? AND id < ? "
@@ -1079,7 +1080,12 @@ def _load_segments(
                 h = held.get(eid)
                 arrays = h.bow if h is not None else _EMPTY_BOW_ARRAYS
             else:
-                arrays = unpack_arrays(blob, f"{sql.where}: entry {eid}")
+                try:
+                    arrays = unpack_arrays(blob, f"entry {eid}")
+                    _bow_words(arrays, eid, sql.where, n_words)
+                except DatabaseError as exc:  # one damaged vector must not lock the map away
+                    damaged.append(str(exc).removeprefix(f"{sql.where}: "))
+                    arrays = _EMPTY_BOW_ARRAYS
             words = _bow_words(arrays, eid, sql.where, n_words)
             words_l.append(words)
             post_l.append(pack_postings(np.full(words.shape[0], eid, np.int32), arrays["weights"]))
@@ -1092,5 +1098,10 @@ def _load_segments(
         words = np.concatenate(words_l) if words_l else np.zeros(0, np.int32)
         post = np.concatenate(post_l) if post_l else empty_postings()
         out.append(sort_block(words, post, a, b, sessions, n_words))
+    if damaged:
+        log.warning("%s: %d entr%s with a corrupt BoW vector left out of every query (%s%s); the "
+                    "rest of the map is intact: remove them (Database.remove) or restore the file",
+                    sql.where, len(damaged), "y" if len(damaged) == 1 else "ies", "; ".join(damaged[:3]),
+                    "; ..." if len(damaged) > 3 else "")
     return out
 
