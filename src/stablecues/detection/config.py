@@ -70,8 +70,9 @@ class QueryConfig:
             after a map is reopened, is re-queried from the stored entries.
         sequence_rank: also rank the candidates by their sequence score instead of this
             frame's score alone (islands, verification and the temporal window then run on
-            that ranking), SeqSLAM's own use of it. Off in every preset: on CamVid's
-            train_drives it let a wrong entry with a long line win (bench_learned.py).
+            that ranking), SeqSLAM's own use of it. Off in every preset: measured before the
+            scores were capped, alone it moved the night pairings less than the sequence
+            confidence does (docs/learned.md), and with the capped scores it is not measured.
         sequence_tolerance: each step of the line may land this many entries either side.
     """
 
