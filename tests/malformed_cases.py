@@ -221,6 +221,27 @@ def kitti_calib(path: Path, p0: str | None = None, p1: str | None = None, p2: st
     return path
 
 
+def tampered_vocabulary(src: Path, dst: Path, edit: str) -> None:
+    """``src`` with its payload or header changed and the payload CRC made to fit again: what
+    the CRC alone cannot tell from the original."""
+    raw = bytearray(src.read_bytes())
+    _, version, hlen = struct.unpack_from("<8sII", raw)
+    header = json.loads(raw[16:16 + hlen])
+    start = 16 + hlen + (-(16 + hlen)) % 64
+    if edit == "centroid":
+        at = start + header["arrays"]["descriptors"]["offset"] + 4 * 64 * 7  # a centroid's first value
+        raw[at:at + 4] = struct.pack("<f", 3e38)
+    elif edit == "relabel":  # float words read as 256-byte binary words: the same bytes
+        header["descriptor"] = {"kind": "binary", "size": 256}
+        header["arrays"]["descriptors"]["dtype"] = "|u1"
+        header["arrays"]["descriptors"]["shape"][1] = 256
+    payload = bytes(raw[start:start + header["payload_bytes"]])
+    header["payload_crc32"] = zlib.crc32(payload)
+    text = json.dumps(header, sort_keys=True).encode()
+    head = struct.pack("<8sII", b"SCVOCAB\0", version, len(text)) + text
+    dst.write_bytes(head + b"\0" * ((-len(head)) % 64) + payload)
+
+
 def verify_argv(folder: Path, calib: Path | str, *extra: str) -> list[str]:
     a, b = images(folder / "pair", 2)
     return ["verify", str(a), str(b), "--calib", str(calib), *extra]
@@ -1620,22 +1641,9 @@ def _(d: Path) -> Setup:
 
 @case("vocabulary/float-centroid-tampered-crc-fixed")
 def _(d: Path) -> Setup:
-    import struct
-    import zlib
-
     from stablecues.vocabulary import default_vocabulary_path
 
-    raw = bytearray(default_vocabulary_path("xfeat").read_bytes())
-    _, version, hlen = struct.unpack_from("<8sII", raw)
-    header = json.loads(raw[16:16 + hlen])
-    start = 16 + hlen + (-(16 + hlen)) % 64
-    at = start + header["arrays"]["descriptors"]["offset"]
-    raw[at:at + 4] = struct.pack("<f", 3e38)
-    payload = bytes(raw[start:start + header["payload_bytes"]])
-    header["payload_crc32"] = zlib.crc32(payload)
-    text = json.dumps(header, sort_keys=True).encode()
-    head = struct.pack("<8sII", b"SCVOCAB\0", version, len(text)) + text
-    (d / "v.scv").write_bytes(head + b"\0" * ((-len(head)) % 64) + payload)
+    tampered_vocabulary(default_vocabulary_path("xfeat"), d / "v.scv", "centroid")
     return Setup(["vocab", "info", str(d / "v.scv")], "v.scv")
 
 

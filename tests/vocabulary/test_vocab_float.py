@@ -10,6 +10,7 @@ import pytest
 from vocab_files import split_binary
 
 from conftest import shared_path
+from malformed_cases import tampered_vocabulary
 from stablecues.errors import ConfigError, InputError, VocabularyError
 from stablecues.features import SiftExtractor
 from stablecues.imageio import read_image
@@ -354,31 +355,6 @@ def test_detector_and_database_take_the_sift_vocabulary(tmp_path: Path) -> None:
         LoopDetector(cfg, vocabulary=default_vocabulary("orb"))
 
 
-def _tampered(src: Path, dst: Path, edit: str) -> None:
-    """``src`` with its payload or header changed and the payload CRC made to fit again: what
-    the CRC alone cannot tell from the original."""
-    import json
-    import struct
-    import zlib
-
-    raw = bytearray(src.read_bytes())
-    _, version, hlen = struct.unpack_from("<8sII", raw)
-    header = json.loads(raw[16:16 + hlen])
-    start = 16 + hlen + (-(16 + hlen)) % 64
-    if edit == "centroid":
-        at = start + header["arrays"]["descriptors"]["offset"] + 4 * 64 * 7  # a centroid's first value
-        raw[at:at + 4] = struct.pack("<f", 3e38)
-    elif edit == "relabel":  # float words read as 256-byte binary words: the same bytes
-        header["descriptor"] = {"kind": "binary", "size": 256}
-        header["arrays"]["descriptors"]["dtype"] = "|u1"
-        header["arrays"]["descriptors"]["shape"][1] = 256
-    payload = bytes(raw[start:start + header["payload_bytes"]])
-    header["payload_crc32"] = zlib.crc32(payload)
-    text = json.dumps(header, sort_keys=True).encode()
-    head = struct.pack("<8sII", b"SCVOCAB\0", version, len(text)) + text
-    dst.write_bytes(head + b"\0" * ((-len(head)) % 64) + payload)
-
-
 @pytest.mark.parametrize("edit", ["centroid", "relabel"])
 def test_a_vocabulary_whose_content_does_not_match_its_fingerprint_is_refused(
     edit: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -393,7 +369,7 @@ def test_a_vocabulary_whose_content_does_not_match_its_fingerprint_is_refused(
 
     original = default_vocabulary_path("xfeat")
     bad = tmp_path / f"{edit}.scv"
-    _tampered(original, bad, edit)
+    tampered_vocabulary(original, bad, edit)
     voc = load_vocabulary(bad)  # loading stays fast: nothing hashed yet
     with pytest.raises(VocabularyError, match=f"{edit}.scv: the vocabulary's content does not match"):
         _ = voc.fingerprint

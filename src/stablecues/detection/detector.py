@@ -321,8 +321,8 @@ class LoopDetector:
                 self._sequence.push(Scored.empty())
                 continue
             results = self.db.query(self.db.entry(e).bow, max_results=q.max_results, max_id=limit)
-            self._sequence.push(Scored.of(np.array([r.entry_id for r in results], np.int64),
-                                          np.minimum(np.array([r.score for r in results]) / float(ns), 1.0)))
+            self._sequence.push(Scored.capped(np.array([r.entry_id for r in results], np.int64),
+                                              np.array([r.score for r in results]) / float(ns)))
 
     def close(self) -> None:
         self.db.close()
@@ -646,9 +646,7 @@ class LoopDetector:
         norm = raw / ns
         out.results = [(int(e), float(v)) for e, v in zip(ids, norm, strict=True)]
         out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
-        # capped at 1 (the frame against its own predecessor): right after a cut that predecessor
-        # is another place and normalised scores run to 5 and more, which would outweigh a line
-        out.current = Scored.of(ids, np.minimum(norm, 1.0))
+        out.current = Scored.capped(ids, norm)
         rank = norm
         if q.sequence >= 2:
             out.window = self._sequence.window(out.current)

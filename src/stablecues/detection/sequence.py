@@ -43,6 +43,13 @@ class Scored:
         return cls(ids[order], scores[order])
 
     @classmethod
+    def capped(cls, ids: np.ndarray, normalised: np.ndarray) -> Scored:
+        """A query's results for the history: normalised scores capped at 1 (the frame against
+        its own predecessor; right after a cut that predecessor is another place and normalised
+        scores run to 5 and more, which would outweigh a line)."""
+        return cls.of(ids, np.minimum(np.asarray(normalised, np.float64), 1.0))
+
+    @classmethod
     def empty(cls) -> Scored:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.float64))
 
