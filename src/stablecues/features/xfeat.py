@@ -210,19 +210,25 @@ def _cubic_weights(t: np.ndarray) -> np.ndarray:
 
 def sample_bicubic(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Bicubic samples of a (C, h, w) map at image positions ``xy`` (P, 2), zero outside the map
-    (torch's ``grid_sample(mode="bicubic", padding_mode="zeros")``): (P, C) float32."""
-    x, y = _grid_coords(xy.astype(np.float64), size, (values.shape[2], values.shape[1]))
+    (torch's ``grid_sample(mode="bicubic", padding_mode="zeros")``): (P, C) float32.
+
+    The map is padded with two cells of zeros on every side (a tap lands at most two cells
+    outside it), so the 16 taps of every sample are one gather from the flattened map."""
+    c, h, w = values.shape
+    x, y = _grid_coords(xy.astype(np.float64), size, (w, h))
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    wx = _cubic_weights(x - x0).astype(np.float32)[:, :, None]
-    wy = _cubic_weights(y - y0).astype(np.float32)[:, :, None]
-    hwc = _channels_last(values)
-    out = np.zeros((xy.shape[0], hwc.shape[2]), np.float32)
-    for j in range(4):
-        row = np.zeros_like(out)
-        for i in range(4):
-            row += _taps(hwc, y0 + j - 1, x0 + i - 1) * wx[i]
-        out += row * wy[j]
-    return out
+    wx = _cubic_weights(x - x0).astype(np.float32)  # (4, P)
+    wy = _cubic_weights(y - y0).astype(np.float32)
+    padded = np.zeros((h + 4, w + 4, c), np.float32)
+    padded[2:-2, 2:-2] = np.moveaxis(values, 0, -1)
+    # tap (j, i) of a sample reads cell (y0 + j - 1, x0 + i - 1): (y0 + j + 1, x0 + i + 1) padded
+    # (4, P); the clip only keeps a position outside the image from indexing out of the map
+    rows = np.clip(y0, -2, h)[None, :] + np.arange(1, 5)[:, None]
+    cols = np.clip(x0, -2, w)[None, :] + np.arange(1, 5)[:, None]
+    flat = (rows[:, None, :] * (w + 4) + cols[None, :, :]).reshape(16, -1)  # (16, P), j-major
+    weights = (wy[:, None, :] * wx[None, :, :]).reshape(16, -1)
+    taps = padded.reshape(-1, c)[flat]  # (16, P, C)
+    return np.einsum("kp,kpc->pc", weights, taps, dtype=np.float32)
 
 
 class XFeatExtractor:

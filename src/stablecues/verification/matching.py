@@ -148,11 +148,10 @@ def scaled_distances(
     """
     kind = _checked_kind(a, b)
     if kind.kind == "float":
+        if ia is not None and ib is not None:
+            return _pair_distances(a, b, ia, ib)
         ua, ub = _unit(a), _unit(b)
-        if ia is None or ib is None:
-            sq = 2.0 - 2.0 * (ua @ ub.T)
-        else:
-            return _pair_distances(ua, ub, ia, ib)
+        sq = 2.0 - 2.0 * (ua @ ub.T)
         return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
     wa, wb = as_words(a), as_words(b)
     h = hamming_cross(wa, wb) if ia is None or ib is None else hamming_rows(wa[ia], wb[ib])
@@ -232,33 +231,72 @@ def _best_two_float(
     a: np.ndarray, b: np.ndarray, cross_check: bool
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Brute force over float descriptors: per query feature its nearest candidate, the best and
-    second-best distances (on :func:`scaled_distances`' scale) and, with ``cross_check``, each
-    candidate's nearest query feature (else an empty array).
+    second-best distances (on :func:`scaled_distances`' scale) and, with ``cross_check``, whether
+    the query feature is also its nearest candidate's nearest query feature (else an empty array).
 
     The nearest neighbours come from one float32 product of the unit vectors (BLAS; the full
-    (N, M) distance matrix of :func:`scaled_distances` is never made); the distances of the pairs
-    chosen are then computed as :func:`scaled_distances` computes them.
+    (N, M) distance matrix of :func:`scaled_distances` is never made); the mutual check compares
+    each chosen pair with its column's maximum (a row-wise reduction, not a strided argmax); the
+    distances of the pairs chosen are then computed as :func:`scaled_distances` computes them.
     """
     _checked_kind(a, b)
     n, m = a.shape[0], b.shape[0]
-    ua, ub = _unit(a), _unit(b)
-    sim = ua.astype(np.float32) @ ub.astype(np.float32).T
+    sim = _unit32(a) @ _unit32(b).T
     rows = np.arange(n)
     best_j = np.argmax(sim, axis=1).astype(np.int64)
-    back = np.argmax(sim, axis=0).astype(np.int64) if cross_check else np.zeros(0, np.int64)
-    best = _pair_distances(ua, ub, rows, best_j)
+    top = sim[rows, best_j]
+    mutual = top >= sim.max(axis=0)[best_j] if cross_check else np.zeros(0, bool)
+    best = _pair_distances(a, b, rows, best_j)
     if m < 2:
-        return best_j, best, np.full(n, _NONE, np.int64), back
+        return best_j, best, np.full(n, _NONE, np.int64), mutual
     sim[rows, best_j] = -np.inf
-    second = _pair_distances(ua, ub, rows, np.argmax(sim, axis=1))
-    return best_j, best, np.maximum(second, best), back
+    second = _pair_distances(a, b, rows, np.argmax(sim, axis=1))
+    return best_j, best, np.maximum(second, best), mutual
 
 
-def _pair_distances(ua: np.ndarray, ub: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
-    """:func:`scaled_distances` of unit float vectors' pairs ``(ua[ia], ub[ib])``."""
-    diff = ua[ia] - ub[ib]
+def _unit32(d: np.ndarray) -> np.ndarray:
+    """Unit rows in float32 (for the similarity product only)."""
+    x = np.asarray(d, np.float32)
+    return x / np.maximum(np.sqrt(np.einsum("ij,ij->i", x, x)), 1e-12)[:, None]
+
+
+def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """:func:`scaled_distances` of the pairs ``(a[ia], b[ib])``, each row made a unit vector in
+    float64 first (only the rows of the pairs are normalised)."""
+    diff = _unit(a[ia]) - _unit(b[ib])
     sq = np.einsum("ij,ij->i", diff, diff)
     return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
+
+
+def _best_two_indexed(
+    query: Features, candidate: Features, query_fvec: FeatureVector, candidate_fvec: FeatureVector,
+    cross_check: bool, engine: str,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Per query feature, among the candidates under its vocabulary node: its nearest candidate,
+    best and second-best distance, whether it has any; with ``cross_check`` each candidate
+    feature's nearest query feature among the pairs it takes part in (-1: none)."""
+    n, m = len(query), len(candidate)
+    if len(query_fvec) != n or len(candidate_fvec) != m:
+        raise InputError(
+            f"feature vectors: expected {n} and {m} nodes like the features, "
+            f"got {len(query_fvec)} and {len(candidate_fvec)}"
+        )
+    kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine, cross_check)
+    if kernels is not None:
+        best_j, best, second = _best_two_compiled(
+            kernels, query.descriptors, candidate.descriptors, query_fvec, candidate_fvec)
+        return best_j, best, second, best_j >= 0, None
+    qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
+    dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
+    best_pos, best, second = _best_two_grouped(qi, dist, n)
+    has = best_pos >= 0
+    best_j = np.full(n, -1, np.int64)
+    best_j[has] = ci[best_pos[has]]
+    if not cross_check:
+        return best_j, best, second, has, None
+    ckey = np.full(m, np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(ckey, ci, (dist.astype(np.int64) << 32) | qi)
+    return best_j, best, second, has, np.where(ckey == np.iinfo(np.int64).max, -1, ckey & 0xFFFFFFFF)
 
 
 def match_features(
@@ -304,32 +342,16 @@ def match_features(
     if n == 0 or m == 0:
         return Matches.empty()
 
+    back: np.ndarray | None = None  # with cross_check: each candidate feature's nearest query feature
+    mutual = np.ones(n, bool)
     if query_fvec is not None and candidate_fvec is not None:
-        if len(query_fvec) != n or len(candidate_fvec) != m:
-            raise InputError(
-                f"feature vectors: expected {n} and {m} nodes like the features, "
-                f"got {len(query_fvec)} and {len(candidate_fvec)}"
-            )
-        kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine, cross_check)
-        if kernels is not None:
-            best_j, best, second = _best_two_compiled(
-                kernels, query.descriptors, candidate.descriptors, query_fvec, candidate_fvec)
-            has = best_j >= 0
-        else:
-            qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
-            dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
-            best_pos, best, second = _best_two_grouped(qi, dist, n)
-            has = best_pos >= 0
-            best_j = np.full(n, -1, np.int64)
-            best_j[has] = ci[best_pos[has]]
-        if cross_check:
-            # best query of every candidate feature among the pairs it takes part in
-            ckey = np.full(m, np.iinfo(np.int64).max, np.int64)
-            np.minimum.at(ckey, ci, (dist.astype(np.int64) << 32) | qi)
-            back = np.where(ckey == np.iinfo(np.int64).max, -1, ckey & 0xFFFFFFFF)
+        best_j, best, second, has, back = _best_two_indexed(query, candidate, query_fvec, candidate_fvec,
+                                                            cross_check, engine)
     elif DescriptorKind.of(query.descriptors, "query descriptors").kind == "float":
-        best_j, best, second, back = _best_two_float(query.descriptors, candidate.descriptors, cross_check)
+        best_j, best, second, nearest = _best_two_float(query.descriptors, candidate.descriptors, cross_check)
         has = np.ones(n, bool)
+        if cross_check:
+            mutual = nearest
     else:
         d = scaled_distances(query.descriptors, candidate.descriptors)
         best_j = np.argmin(d, axis=1).astype(np.int64)
@@ -338,12 +360,13 @@ def match_features(
         has = np.ones(n, bool)
         if cross_check:
             back = np.argmin(d, axis=0).astype(np.int64)
+    if back is not None:
+        mutual = back[np.clip(best_j, 0, m - 1)] == np.arange(n)
 
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(second > 0, best / np.maximum(second, 1), 1.0)
     keep = has & (best <= max_distance) & (best < ratio * second)
-    if cross_check:
-        keep &= back[np.clip(best_j, 0, m - 1)] == np.arange(n)
+    keep &= mutual
     qidx = np.flatnonzero(keep)
     cidx = best_j[qidx]
     bd = best[qidx]
