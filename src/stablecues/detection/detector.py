@@ -635,7 +635,7 @@ class LoopDetector:
         self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
                     pose=frame.pose, meta=meta, arrays=arrays or None)
         if self._vlad is not None and vlad is not None:
-            self._vlad.append(vlad)
+            self._vlad.append(vlad, entry=len(self.db) - 1)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a

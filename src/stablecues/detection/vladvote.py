@@ -45,6 +45,7 @@ class VladVote:
         self.weight = float(weight)
         self.max_results = int(max_results)
         self._rows = np.zeros((0, codebook.size), np.float32)
+        self._usable = np.zeros(0, bool)  # the entry has a vector (not removed, not empty)
         self._n = 0
         self.prev: np.ndarray | None = None  # the previous stored frame's vector
 
@@ -84,13 +85,20 @@ class VladVote:
         exactly as the run that made it)."""
         return self.codebook.encode(descriptors).astype(np.float16).astype(np.float32)
 
-    def append(self, vector: np.ndarray) -> None:
-        """The next entry's vector (zeros for a removed entry)."""
+    def append(self, vector: np.ndarray, entry: int | None = None) -> None:
+        """The next entry's vector (zeros for a removed entry); with ``entry``, the rows of
+        entries added to the map by other means before it are zeros (never VLAD candidates)."""
+        while entry is not None and self._n < entry:
+            self.append(np.zeros(self.codebook.size, np.float32))
         if self._n == self._rows.shape[0]:
-            grown = np.zeros((max(16, 2 * self._n), self.codebook.size), np.float32)
+            size = max(16, 2 * self._n)
+            grown = np.zeros((size, self.codebook.size), np.float32)
             grown[: self._n] = self._rows[: self._n]
-            self._rows = grown
+            usable = np.zeros(size, bool)
+            usable[: self._n] = self._usable[: self._n]
+            self._rows, self._usable = grown, usable
         self._rows[self._n] = vector
+        self._usable[self._n] = bool(np.any(vector != 0))
         self._n += 1
         self.prev = self._rows[self._n - 1]
 
@@ -137,7 +145,7 @@ class VladVote:
             return ids, raw, bow_norm
         sims = self._rows[:hi] @ vector
         alive = db.index.alive()
-        usable = np.any(self._rows[:hi] != 0, axis=1)
+        usable = self._usable[:hi].copy()
         if alive is not None:
             usable &= alive[:hi]
         if not usable.any():
