@@ -258,3 +258,33 @@ def test_missing_directory_is_not_created(voc: Vocabulary, tmp_path: Path) -> No
     with pytest.raises(DatabaseError, match="does not exist"):
         Database(voc, tmp_path / "nope" / "dir" / "map.sqlite")
     assert not (tmp_path / "nope").exists()
+
+
+def test_a_damaged_segment_body_never_answers(
+    voc: Vocabulary, many_images: list[np.ndarray], tmp_path: Path, caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A flipped byte inside a segment's postings passes the header and table checks of the
+    open (a 10^6 map reopens without reading its bodies), but the body is checked before the
+    segment first answers: a reader refuses in one line naming the file, the writer rebuilds
+    it from the entries (a warning names it) and answers as before; `check` names it too."""
+    path = tmp_path / "map.sqlite"
+    before = build_map(path, voc, many_images, DatabaseConfig(tail_postings=500))
+    victim = _segment_files(path)[0]
+    raw = bytearray(victim.read_bytes())
+    raw[128 + 8 * 3 + 5] ^= 0x40  # a weight of the 4th posting
+    victim.write_bytes(bytes(raw))
+    with Database(voc, path, readonly=True) as reader:
+        assert len(reader.check()) == 1 and str(victim) in reader.check()[0]
+    with Database(voc, path, readonly=True) as reader:
+        with pytest.raises(DatabaseError, match="checksum mismatch") as err:
+            reader.query(voc.transform(many_images[0])[0], 5)
+        assert str(victim) in str(err.value) and "stablecues map repair" in str(err.value)
+        assert "\n" not in str(err.value)
+    caplog.set_level(logging.WARNING)
+    with Database(voc, path) as db:
+        assert answers(db, voc, many_images) == before
+        assert any(str(victim) in r.getMessage() and "rebuilding" in r.getMessage() for r in caplog.records)
+        db.flush()
+        assert db.check() == []
+    with Database(voc, path, readonly=True) as reader:
+        assert answers(reader, voc, many_images) == before

@@ -161,3 +161,16 @@ def test_keypoint_spread_without_the_compiler(monkeypatch: pytest.MonkeyPatch) -
     monkeypatch.setenv("STABLECUES_ENGINE", "gpu")
     with pytest.raises(ConfigError, match="STABLECUES_ENGINE"):
         select_keypoints(*args)
+
+
+def test_clahe_lifts_a_dark_frame_and_is_checked() -> None:
+    """A texture at a twentieth of its contrast (a night frame): ORB's FAST thresholds find few
+    corners (11), with CLAHE first most of the budget; off, the frame is used as it is."""
+    dark = (textured().astype(np.float32) / 20.0 + 5.0).astype(np.uint8)
+    plain = OrbExtractor(OrbConfig(n_features=300)).extract(dark)
+    lifted = OrbExtractor(OrbConfig(n_features=300, clahe=2.0)).extract(dark)
+    assert len(plain) < 50 and len(lifted) > 200
+    same = OrbExtractor(OrbConfig(n_features=300, clahe=0.0)).extract(dark)
+    np.testing.assert_array_equal(same.keypoints, plain.keypoints)
+    with pytest.raises(ConfigError, match="clahe"):
+        OrbConfig(clahe=-1.0)

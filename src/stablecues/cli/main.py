@@ -50,6 +50,7 @@ COMMANDS: dict[str, str] = {
     "mav": "mav",
     "info": "info",
     "sweep": "sweep",
+    "map": "mapcmd",
 }
 
 

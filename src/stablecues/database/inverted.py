@@ -36,7 +36,17 @@ import numpy as np
 
 from ..errors import DatabaseError
 from ..vocabulary.scoring import Scoring, common_terms, finish, kl_missing_total
-from .segments import MemorySink, MergeJob, Segment, Sink, empty_postings, pack_postings, sort_blocks, split
+from .segments import (
+    MemorySink,
+    MergeJob,
+    Segment,
+    Sink,
+    empty_postings,
+    ensure_verified,
+    pack_postings,
+    sort_blocks,
+    split,
+)
 
 log = logging.getLogger(__name__)
 
@@ -395,6 +405,8 @@ class InvertedIndex:
         return []
 
     def _start(self, inputs: list[Segment], alive: np.ndarray | None = None) -> _Job:
+        for seg in inputs:  # a damaged file merged would come out under a fresh checksum
+            ensure_verified(seg, self.n_entries)
         factory = self.store.sink if self.store is not None else self._memory_sink
         job = _Job(inputs, merge=MergeJob(inputs, factory, self.n_words, self.chunk, alive,
                                           reader=getattr(self.store, "reader", None)))
@@ -610,6 +622,7 @@ class InvertedIndex:
         post_parts: list[np.ndarray] = []
         v_parts: list[np.ndarray] = []
         for seg in snap.segments:
+            ensure_verified(seg, snap.n_entries)
             got = seg.gather(words, values)
             if got is not None:
                 post_parts.append(got[0])

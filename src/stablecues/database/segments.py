@@ -95,6 +95,10 @@ class Segment:
         sessions: (hi - lo,) int32 session id of every covered entry.
         name: file name in the index directory when the segment is persisted, else None.
         crc: CRC-32 of the file body (persisted segments).
+        path: the file, for a persisted segment.
+        verified: the file's body was checked against ``crc`` (or this process wrote it); an
+            unverified one is checked before it first answers a query or is merged
+            (:func:`ensure_verified`).
     """
 
     lo: int
@@ -106,6 +110,7 @@ class Segment:
     name: str | None = None
     crc: int = 0
     path: Path | None = None
+    verified: bool = False
 
     @property
     def size(self) -> int:
@@ -750,7 +755,40 @@ def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) ->
                                        or bool(np.any(words[1:] < words[:-1]))):
             raise DatabaseError(f"{path}: index file's words are corrupt")
     sessions = np.frombuffer(mm, "<i4", hi - lo, off)
-    return Segment(lo, hi, postings, words, indptr, sessions, name=path.name, crc=crc, path=path)
+    return Segment(lo, hi, postings, words, indptr, sessions, name=path.name, crc=crc, path=path,
+                   verified=trusted)
+
+
+_VERIFYING = threading.Lock()
+
+
+class SegmentDamaged(DatabaseError):
+    """A persisted segment whose body fails its checksum (``segment``: which one)."""
+
+    def __init__(self, message: str, segment: Segment) -> None:
+        super().__init__(message)
+        self.segment = segment
+
+
+def ensure_verified(seg: Segment, n_entries: int) -> None:
+    """Check a persisted segment's body once, before it first answers a query or is merged
+    (opening a map checks headers and tables only, so that a map of 10^6 entries reopens in
+    milliseconds; the body's checksum costs one read of the file).
+
+    Raises:
+        DatabaseError: the body does not match its checksum or holds foreign entry ids, naming
+            the file and the repair.
+    """
+    if seg.verified or seg.path is None:
+        return
+    with _VERIFYING:
+        if seg.verified:
+            return
+        problem = verify_segment(seg, n_entries)
+        if problem is not None:
+            raise SegmentDamaged(f"{problem}: refusing to answer from it (`stablecues map repair` on its "
+                                 "map rebuilds it from the entries)", seg)
+        seg.verified = True
 
 
 def verify_segment(seg: Segment, n_entries: int, block: int = 1 << 24) -> str | None:

@@ -76,7 +76,7 @@ from .schema import (
     prepare,
     timestamp_value,
 )
-from .segments import Segment, empty_postings, pack_postings, sort_block, verify_segment
+from .segments import Segment, SegmentDamaged, empty_postings, pack_postings, sort_block, verify_segment
 
 log = logging.getLogger(__name__)
 
@@ -764,7 +764,7 @@ class Database:
         hi = len(self) - max(int(exclude_recent), 0)
         if max_id is not None:
             hi = min(hi, int(max_id))
-        ids, scores = self.index.scores(bow.words, bow.weights, max_id=hi, min_id=min_id)
+        ids, scores = self._index_scores(bow, max_id=hi, min_id=min_id)
         ids, scores = self._in_sessions(ids, scores, sessions, exclude_sessions)
         if ids.size == 0:
             return []
@@ -775,6 +775,24 @@ class Database:
         else:
             order = np.lexsort((ids, key))
         return [QueryResult(int(ids[i]), float(scores[i])) for i in order]
+
+    def _index_scores(
+        self, bow: BowVector, max_id: int | None, min_id: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse index's scores; a persisted segment whose body fails its checksum on
+        first use is rebuilt from the entries by the writer (with a warning naming it), and
+        refused in one line by a reader."""
+        for _ in range(len(self.index.segments) + 1):
+            try:
+                return self.index.scores(bow.words, bow.weights, max_id=max_id, min_id=min_id)
+            except SegmentDamaged as exc:
+                if self.readonly or self.path is None or self._writer is None:
+                    raise
+                log.warning("%s; rebuilding it from the entries", exc.args[0].split(": refusing")[0])
+                with self._add_lock:
+                    if exc.segment in self.index.segments:
+                        self._rebuild([exc.segment])
+        return self.index.scores(bow.words, bow.weights, max_id=max_id, min_id=min_id)
 
     def _in_sessions(
         self, ids: np.ndarray, scores: np.ndarray, sessions: int | Iterable[int] | None,
@@ -800,7 +818,7 @@ class Database:
     ) -> np.ndarray:
         """Dense (len(self),) float64 scores of the query against every entry (0 when no word
         is shared, or the entry is removed or left out by the session filters; for KL, +inf)."""
-        ids, s = self.index.scores(bow.words, bow.weights, max_id=max_id)
+        ids, s = self._index_scores(bow, max_id=max_id)
         ids, s = self._in_sessions(ids, s, sessions, exclude_sessions)
         n = len(self)
         out = np.zeros(n) if self._higher_better else np.full(n, np.inf)
@@ -908,25 +926,67 @@ class Database:
         return dict(zip(s.tolist(), counts.tolist(), strict=True))
 
     def check(self, repair: bool = False) -> list[str]:
-        """Check the index files' checksums and entry ids, and the file's integrity.
+        """Check the index files' checksums and entry ids, the rows against the entry ids (one
+        row per id: a row deleted from the SQLite file leaves its id answering queries with
+        nothing to read), and the file's integrity.
 
         Args:
-            repair: rebuild index segments that fail from the entries.
+            repair: rebuild index segments that fail from the entries; give every id without a
+                row a removed entry's row (its data is lost; it leaves the queries).
 
         Returns:
             the problems found (empty: all good).
         """
+        self._drain()  # every add in SQLite
         n = len(self)
-        self._drain()
-        bad = [(s, p) for s in self.index.segments if (p := verify_segment(s, n)) is not None]
+        checked = [(s, verify_segment(s, n)) for s in self.index.segments]
+        for s, p in checked:
+            s.verified = s.verified or p is None
+        bad = [(s, p) for s, p in checked if p is not None]
         problems = [p for _, p in bad]
+        missing = self._missing_rows(n)
+        if missing.size:
+            shown = ", ".join(map(str, missing[:8].tolist())) + (", ..." if missing.size > 8 else "")
+            problems.append(f"{self._where()}: {missing.size} of the entry ids 0..{n - 1} have no row in the "
+                            f"SQLite file (ids {shown}): their entries are lost")
         rows = self._sql.rows("PRAGMA quick_check", what="the file's integrity")
         problems += [f"{self._where()}: {r[0]}" for r in rows if r[0] != "ok"]
-        if repair and bad:
+        if repair and (bad or missing.size):
             with self._add_lock:
                 self._writable()
                 self._rebuild([s for s, _ in bad])
+                self._fill_missing_rows(missing)
         return problems
+
+    def _missing_rows(self, n: int) -> np.ndarray:
+        """Entry ids below ``n`` without a row (a row count first: one read of the id b-tree)."""
+        (count,) = self._sql.rows("SELECT COUNT(*) FROM entries", what="the entries")[0]
+        if count >= n:
+            return np.zeros(0, np.int64)
+        have = np.zeros(n, bool)
+        for (eid,) in self._sql.rows("SELECT id FROM entries", what="the entries"):
+            if isinstance(eid, int) and 0 <= eid < n:
+                have[eid] = True
+        return np.flatnonzero(~have).astype(np.int64)
+
+    def _fill_missing_rows(self, missing: np.ndarray) -> None:
+        """A removed entry's row for every id in ``missing`` (its session kept from the index)."""
+        if not missing.size:
+            return
+        sessions = self.index.sessions()
+        try:
+            with self._sql.write() as conn:
+                conn.executemany(
+                    "INSERT INTO entries (id, timestamp, n_features, bow, payload, meta, session, removed) "
+                    "VALUES (?, NULL, 0, ?, ?, 'null', ?, 1)",
+                    [(int(i), _EMPTY_BOW, _EMPTY_PAYLOAD, int(sessions[i]) if i < sessions.size else 0)
+                     for i in missing])
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(f"{self._where()}: cannot restore the rows of lost entries ({exc})") from exc
+        self.index.remove(missing)
+        with self._cache_lock:
+            for i in missing.tolist():
+                self._cache.pop(i, None)
 
     def _rebuild(self, segments: list[Segment]) -> None:
         for seg in segments:

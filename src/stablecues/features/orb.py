@@ -54,6 +54,9 @@ class OrbConfig(ExtractorConfig):
         oversample: with "quadtree", how many candidates to detect per wanted feature.
         edge_threshold: border in pixels where no features are detected (>= patch_size).
         patch_size: ORB patch size.
+        clahe: illumination normalisation before detection: OpenCV's CLAHE (contrast-limited
+            adaptive histogram equalisation, 8 x 8 tiles) with this clip limit; 0: off (every
+            preset; measured on the day/night pairings in docs/learned.md).
     """
 
     name: str = "orb"
@@ -66,6 +69,7 @@ class OrbConfig(ExtractorConfig):
     oversample: float = 2.5
     edge_threshold: int = 19
     patch_size: int = 31
+    clahe: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -81,6 +85,8 @@ class OrbConfig(ExtractorConfig):
             raise ConfigError(f"distribute must be 'quadtree' or 'none', got {self.distribute!r}")
         if self.oversample < 1.0:
             raise ConfigError(f"oversample must be >= 1, got {self.oversample}")
+        if not 0.0 <= self.clahe < 1e3:
+            raise ConfigError(f"clahe (CLAHE's clip limit) must be 0 (off) or positive, got {self.clahe}")
 
 
 def level_quotas(n_features: int, scale_factor: float, n_levels: int) -> np.ndarray:
@@ -261,6 +267,8 @@ class OrbExtractor:
         size = (int(w), int(h))
         mask = check_mask(mask, grey.shape)
         c = self.config
+        if c.clahe > 0 and grey.size:
+            grey = cv2.createCLAHE(clipLimit=c.clahe, tileGridSize=(8, 8)).apply(np.ascontiguousarray(grey))
         if c.n_features == 0 or min(h, w) <= 2 * c.edge_threshold:
             return Features.empty(size)
         if c.distribute == "none":
