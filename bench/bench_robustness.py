@@ -27,6 +27,12 @@ in its entry log only (the writer killed before SQLite took them, as
 at offsets spread over every record (its magic, length, CRC, id, body and metadata bytes, and
 a stride through its blobs), and is reopened each time: how many of the 30 acknowledged
 entries come back, and how many ids the damage cost (the goal: all but the damaged record).
+
+``--segments`` (a section of its own, under a minute): the cost of checking index files before
+they answer: a map of 20,000 entries of 300 random ORB words each (the shipped vocabulary,
+descriptors not stored) is reopened three times; the reopen time, the first query's time (it
+reads every index file once to check its checksum) and the median of the next 20, and the bytes
+checked per second; then one byte of a body flipped: what a reader and the writer do.
 """
 
 from __future__ import annotations
@@ -192,13 +198,90 @@ def entrylog_damage(stride: int = 997) -> dict[str, Any]:
         shutil.rmtree(work, ignore_errors=True)
 
 
+def segment_checks(entries: int = 20_000, features: int = 300) -> dict[str, Any]:
+    """The ``--segments`` section (see the module's docstring)."""
+    import numpy as np
+
+    from stablecues.database import Database, DatabaseConfig
+    from stablecues.database.files import index_dir
+    from stablecues.errors import DatabaseError
+    from stablecues.types import Features
+    from stablecues.vocabulary import default_vocabulary
+
+    voc = default_vocabulary("orb")
+    work = Path(tempfile.mkdtemp(prefix="segs_"))
+    rng = np.random.default_rng(0)
+    try:
+        path = work / "map.sqlite"
+        probes = []
+        with Database(voc, path, DatabaseConfig(store_descriptors=False)) as db:
+            for i in range(entries):
+                d = rng.integers(0, 256, (features, 32), dtype=np.uint8)
+                bow, fvec = voc.transform(d)
+                kept = Features(np.zeros((features, 2), np.float32), d, np.zeros(features, np.int16),
+                                np.zeros(features, np.float32), np.ones(features, np.float32),
+                                np.full(features, 31.0, np.float32), (640, 480))
+                db.add(bow, fvec, kept)
+                if i % (entries // 20) == 0:
+                    probes.append(bow)
+            db.flush()
+        files = sorted(index_dir(path).glob("seg-*.sci"))
+        index_bytes = sum(f.stat().st_size for f in files)
+        runs = []
+        for _ in range(3):
+            t = time.perf_counter()
+            db = Database(voc, path, readonly=True)
+            reopen = time.perf_counter() - t
+            t = time.perf_counter()
+            db.query(probes[0], 10)
+            first = time.perf_counter() - t
+            later = []
+            for bow in probes[1:]:
+                t = time.perf_counter()
+                db.query(bow, 10)
+                later.append(time.perf_counter() - t)
+            db.close()
+            runs.append({"reopen_ms": round(reopen * 1e3, 2), "first_query_ms": round(first * 1e3, 2),
+                         "later_query_ms_median": round(sorted(later)[len(later) // 2] * 1e3, 2)})
+        extra = min(r["first_query_ms"] - r["later_query_ms_median"] for r in runs)
+        raw = bytearray(files[0].read_bytes())
+        raw[128 + 8 * 100 + 2] ^= 0x08
+        files[0].write_bytes(bytes(raw))
+        with Database(voc, path, readonly=True) as reader:
+            try:
+                reader.query(probes[0], 10)
+                reader_says = "answered (damage not seen)"
+            except DatabaseError as exc:
+                reader_says = str(exc)
+        with Database(voc, path) as writer:
+            writer_answers = len(writer.query(probes[0], 10))
+            writer_check = writer.check()
+        return {"entries": entries, "words_per_entry": features, "index_files": len(files),
+                "index_bytes": index_bytes, "runs": runs,
+                "checked_gb_per_s": round(index_bytes / max(extra, 1e-3) / 1e6, 2),
+                "damaged_body": {"reader": reader_says, "writer_results": writer_answers,
+                                 "writer_check_after": writer_check}}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("-k", default="", help="only cases whose name contains this text")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "robustness.json")
     parser.add_argument("--entrylog", action="store_true",
                         help="run the entry-log damage sweep only, merged into --out")
+    parser.add_argument("--segments", action="store_true",
+                        help="time the index files' checks on reopen and first query only, merged into --out")
     args = parser.parse_args()
+    if args.segments:
+        res = segment_checks()
+        doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
+        doc["segment_checks"] = res
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(json.dumps(res, indent=1))
+        print(f"written: {args.out}")
+        return 0
     if args.entrylog:
         res = entrylog_damage()
         doc = json.loads(args.out.read_text()) if args.out.is_file() else {}
@@ -241,7 +324,8 @@ def main() -> int:
         "other": totals.get("other", 0),
         "by_area": _by_area(results),
     }
-    kept = json.loads(args.out.read_text()).get("entrylog_damage") if args.out.is_file() else None
+    old = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    kept = old.get("entrylog_damage")
     doc = {
         "what": "malformed inputs through the CLI, one child process each (bench/bench_robustness.py)",
         "conditions": {
@@ -258,6 +342,8 @@ def main() -> int:
     }
     if kept is not None:  # the --entrylog section's last result stays
         doc["entrylog_damage"] = kept
+    if old.get("segment_checks") is not None:  # and the --segments one's
+        doc["segment_checks"] = old["segment_checks"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     print()

@@ -53,7 +53,9 @@ def test_a_healthy_map_checks_clean(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert path.read_bytes() == raw  # check writes nothing
 
 
-def test_a_damaged_index_file_is_named_and_rebuilt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_damaged_index_file_is_named_and_rebuilt(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     path = tmp_path / "map.sqlite"
     images = _map(path)
     victim = sorted(index_dir(path).glob("seg-*.sci"))[0]
