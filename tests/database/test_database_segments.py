@@ -136,7 +136,8 @@ def rewrite_header(path: Path, **fields: int) -> None:
         (lambda p: corrupt(p, 30, b"\xff"), "header is corrupt"),
         (lambda p: p.write_bytes(p.read_bytes()[:-7]), "truncated or corrupt"),
         (lambda p: p.write_bytes(p.read_bytes() + b"\0" * 8), "truncated or corrupt"),
-        (lambda p: rewrite_header(p, postings=10**15), "truncated or corrupt"),  # claims 8 PB
+        (lambda p: rewrite_header(p, postings=10**15), "claims 1000000000000000 postings"),  # 8 PB
+        (lambda p: rewrite_header(p, postings=2**28), "claims 268435456 postings"),  # issue 34: 1.3 GB
         (lambda p: rewrite_header(p, n_words=10**12), "made for"),
         (lambda p: rewrite_header(p, hi=2**40), "not a valid range"),
         (lambda p: rewrite_header(p, lo=60, hi=50), "not a valid range"),

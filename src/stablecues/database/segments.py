@@ -695,6 +695,9 @@ def read_header(
         raise DatabaseError(f"{path}: index file made for {words} words, the vocabulary has {n_words}")
     if lo > hi or hi >= 2**31:
         raise DatabaseError(f"{path}: index file covers entries {lo}..{hi}, not a valid range")
+    if n_post > (hi - lo) * words:  # an entry has at most one posting per word
+        raise DatabaseError(f"{path}: index file claims {n_post} postings for {hi - lo} entries of at most "
+                            f"{words} words each (corrupt)")
     want = expected_size(form, words, lo, hi, n_post)
     if want != size:
         raise DatabaseError(f"{path}: index file is {size} bytes, its header says {want} "
@@ -711,6 +714,16 @@ class _Mapping(mmap.mmap):
     array made from it lives: the thread that deletes replaced files shortens a large file
     step by step only when it gets the lock exclusively, i.e. when no process maps it (a
     mapping whose file is shortened under it raises SIGBUS at the next read of a lost page)."""
+
+
+def _sorted(values: np.ndarray, block: int = 1 << 22) -> bool:
+    """Whether ``values`` never decreases, checked a block at a time (the temporaries of a
+    check of a whole large table would cost as much memory as the table)."""
+    for a in range(0, max(values.shape[0] - 1, 0), block):
+        b = min(a + block, values.shape[0] - 1)
+        if bool(np.any(values[a + 1 : b + 1] < values[a:b])):
+            return False
+    return True
 
 
 def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) -> Segment:
@@ -746,13 +759,12 @@ def map_segment(path: Path, uuid: bytes, n_words: int, trusted: bool = False) ->
     if form == FORM_CSR:
         indptr = np.frombuffer(mm, "<i8", n_words + 1, off)
         off += 8 * (n_words + 1)
-        if not trusted and (indptr[0] != 0 or indptr[-1] != n_post or bool(np.any(indptr[1:] < indptr[:-1]))):
+        if not trusted and (indptr[0] != 0 or indptr[-1] != n_post or not _sorted(indptr)):
             raise DatabaseError(f"{path}: index file's word table is corrupt")
     else:
         words = np.frombuffer(mm, "<i4", n_post, off)
         off += 4 * n_post
-        if not trusted and n_post and (words[0] < 0 or words[-1] >= n_words
-                                       or bool(np.any(words[1:] < words[:-1]))):
+        if not trusted and n_post and (words[0] < 0 or words[-1] >= n_words or not _sorted(words)):
             raise DatabaseError(f"{path}: index file's words are corrupt")
     sessions = np.frombuffer(mm, "<i4", hi - lo, off)
     return Segment(lo, hi, postings, words, indptr, sessions, name=path.name, crc=crc, path=path,
