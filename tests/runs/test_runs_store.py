@@ -310,3 +310,32 @@ def test_malformed_run_folders_are_one_line_through_the_commands(
     for value in ("no", 1, "true"):
         (run / "meta.json").write_text(json.dumps({**meta, "complete": value}))
         assert not load_run(run).complete
+
+
+def test_files_larger_than_the_run_are_refused_before_they_are_read(tmp_path: Path) -> None:
+    """Issue 34's memory cases: a sparse 20000^2 similarity.npy under a 6-frame run, a
+    decisions.csv with more rows than meta.json's frames, an extra.jsonl line of megabytes and
+    more extra lines than frames: each one line, before the data is read."""
+    path = tmp_path / "run"
+    _write(path)
+    sim = path / "similarity.npy"
+    with sim.open("wb") as f:
+        header = {"descr": "<f4", "fortran_order": False, "shape": (20000, 20000)}
+        np.lib.format.write_array_header_1_0(f, header)
+        f.truncate(f.tell() + 20000 * 20000 * 4)  # sparse: costs nothing on disk
+    with pytest.raises(DatasetError, match=r"shape \(20000, 20000\) is larger than the 6 frames"):
+        _ = load_run(path).similarity
+    meta = json.loads((path / "meta.json").read_text())
+    meta["frames"] = 4
+    (path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="decisions.csv: 6 rows, but .*meta.json gives the run 4 frames"):
+        load_run(path)
+    meta["frames"] = 6
+    (path / "meta.json").write_text(json.dumps(meta))
+    extra = path / "extra.jsonl"
+    extra.write_text(json.dumps({"frame": 2, "results": [[1, 0.5]] * 200_000}) + "\n")
+    with pytest.raises(DatasetError, match="line 1 is .* characters long, more than the 1048576"):
+        load_run(path).extra()
+    extra.write_text("".join(json.dumps({"frame": i}) + "\n" for i in range(6)) * 2)
+    with pytest.raises(DatasetError, match="12 lines for the 6 frames"):
+        load_run(path).extra()

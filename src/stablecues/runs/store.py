@@ -826,7 +826,12 @@ class Run:
             return []
         out = []
         lines = read_text(p, "per-frame extras").splitlines()
+        if len(lines) > len(self) + 1:
+            raise DatasetError(f"{p}: {len(lines)} lines for the {len(self)} frames of {DECISIONS}")
         for lineno, line in enumerate(lines, 1):
+            if len(line) > MAX_EXTRA_LINE_CHARS:  # a decision's record is a few kB
+                raise DatasetError(f"{p}: line {lineno} is {len(line)} characters long, more than the "
+                                   f"{MAX_EXTRA_LINE_CHARS} a frame's record may take")
             try:
                 value = json.loads(line)
             except json.JSONDecodeError:
@@ -863,6 +868,8 @@ class Run:
 
 #: the largest frame index a run may hold (exact in float64, and in every int column)
 MAX_FRAME = 2**53
+#: the longest ``extra.jsonl`` line read (a frame's record: its results, islands and checks)
+MAX_EXTRA_LINE_CHARS = 1 << 20
 
 #: the lists of an ``extra.jsonl`` record that the loss funnel reads, and how long each item is
 _EXTRA_LISTS = {"results": 2, "islands": 4, "checked": 3}
@@ -914,6 +921,11 @@ def load_run(path: str | Path) -> Run:
     decisions = root / DECISIONS
     lines, truncated = _decision_lines(decisions)
     stages = _stage_columns(decisions, lines[0])
+    planned = [v for k in ("frames", "dataset_frames") if isinstance(v := meta.get(k), int)
+               and not isinstance(v, bool) and v >= 0]
+    if planned and len(lines) - 1 > max(planned):  # checked before the rows are parsed
+        raise DatasetError(f"{decisions}: {len(lines) - 1} rows, but {root / META} gives the run "
+                           f"{max(planned)} frames")
     rows = _parse_rows(decisions, lines[1:], len(BASE_COLUMNS) + len(stages))
     _check_frame_order(decisions, rows.frames, rows.candidates)
     return Run(
@@ -1052,7 +1064,10 @@ def _load_similarity(path: Path, frames: np.ndarray) -> np.ndarray | None:
     own_file(path, "similarity matrix")
     if not path.is_file():
         return _similarity_rows(path.with_name(SIMILARITY_ROWS), int(frames.size))
-    m = read_npy(path, "similarity matrix", mmap=True)
+    # a row per frame at most: a matrix larger than the run's frames is refused from its header,
+    # before its data is touched (a sparse 20000^2 file under a 40-frame run cost 1.7 GB)
+    side = int(frames[-1]) + 1 if frames.size else 0
+    m = read_npy(path, "similarity matrix", mmap=True, max_side=side)
     if m.ndim != 2 or m.shape[0] != m.shape[1] or m.dtype.kind != "f":
         raise DatasetError(
             f"{path}: expected a square float N x N similarity matrix, found {m.shape} {m.dtype}"
