@@ -1467,6 +1467,61 @@ def _(d: Path) -> Setup:
     return Setup(["report", str(run), "--out", str(d / "r.html")], "similarity.npy")
 
 
+@case("runs/similarity-sparse-larger-than-run")
+def _(d: Path) -> Setup:
+    """Issue 34: a sparse 20000^2 similarity.npy under a 30-frame run cost report 1.7 GB."""
+    run = fake_run(d)
+    with (run / "similarity.npy").open("wb") as f:
+        header = {"descr": "<f4", "fortran_order": False, "shape": (20000, 20000)}
+        np.lib.format.write_array_header_1_0(f, header)
+        f.truncate(f.tell() + 20000 * 20000 * 4)
+    return Setup(["report", str(run), "--out", str(d / "r.html")], "similarity.npy")
+
+
+@case("runs/decisions-more-rows-than-frames")
+def _(d: Path) -> Setup:
+    """More rows in decisions.csv than meta.json gives the run: refused before the rows are parsed."""
+    run = fake_run(d)
+    meta = json.loads((run / "meta.json").read_text())
+    meta.update(frames=10, dataset_frames=10)
+    (run / "meta.json").write_text(json.dumps(meta))
+    return Setup(["results", str(run)], "decisions.csv")
+
+
+@case("runs/extra-line-of-megabytes")
+def _(d: Path) -> Setup:
+    """Issue 34: a 210 MB extra.jsonl line cost 1.5 GB; a frame's record is a few kB."""
+    run = fake_run(d)
+    (run / "extra.jsonl").write_text(json.dumps({"frame": 20, "results": [[1, 0.5]] * 300_000}) + "\n")
+    np.save(d / "gt.npy", loop_matrix(30))
+    return Setup(["eval", str(run), "--gt", str(d / "gt.npy")], "extra.jsonl")
+
+
+@case("map/segment-body-flipped")
+def _(d: Path) -> Setup:
+    """Issue 34: a damaged index file body answered queries; `map check` names it (exit 1)."""
+    from stablecues.database import Database, DatabaseConfig
+    from stablecues.database.files import index_dir
+    from stablecues.types import Features
+    from stablecues.vocabulary import default_vocabulary
+
+    voc = default_vocabulary("orb")
+    rng = np.random.default_rng(0)
+    with Database(voc, d / "map.sqlite", DatabaseConfig(tail_postings=2000, store_descriptors=False)) as db:
+        for _ in range(60):
+            desc = rng.integers(0, 256, (100, 32), dtype=np.uint8)
+            bow, fvec = voc.transform(desc)
+            db.add(bow, fvec, Features(np.zeros((100, 2), np.float32), desc, np.zeros(100, np.int16),
+                                       np.zeros(100, np.float32), np.ones(100, np.float32),
+                                       np.full(100, 31.0, np.float32), (640, 480)))
+        db.flush()
+    seg = sorted(index_dir(d / "map.sqlite").glob("seg-*.sci"))[0]
+    raw = bytearray(seg.read_bytes())
+    raw[128 + 40] ^= 0x20
+    seg.write_bytes(bytes(raw))
+    return Setup(["map", "check", str(d / "map.sqlite")], seg.name)
+
+
 @case("runs/resume-map-ahead")
 def _(d: Path) -> Setup:
     images(d / "data", 4)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from .options import add_vocabulary_option, vocabulary_from_args
@@ -49,6 +50,9 @@ def run(args: argparse.Namespace) -> int:
         print("  nothing lost or damaged")
     elif not report.repaired:
         print(f"  to salvage what is intact: stablecues map repair {args.map}")
+        found = [*report.warnings, *report.problems]
+        first = "".join(ch if ch.isprintable() else f"\\x{ord(ch):02x}" for ch in found[0])
+        print(f"stablecues map: error: {len(found)} problem(s) found, the first: {first}", file=sys.stderr)
     if args.json is not None:
         doc = {"map": str(report.path), "vocabulary": report.vocabulary, "entries": report.entries,
                "present": report.present, "sessions": report.sessions, "segments": report.segments,
