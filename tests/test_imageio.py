@@ -290,3 +290,27 @@ def test_an_image_too_large_is_refused_before_it_is_decoded(tmp_path: Path) -> N
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((20, 30), np.uint8))
     with pytest.raises(ImageError, match=r"small\.png: a 30 x 20 image is larger than the 100 pixels"):
         read_image(tmp_path / "small.png", max_pixels=100)
+
+
+def test_a_png_decoding_past_the_byte_limit_is_refused_from_its_header(tmp_path: Path) -> None:
+    """Issue 34: under the pixel limit, a 16-bit RGBA 8192 x 8191 PNG (8 bytes a pixel) of 1 MB
+    decoded to 1.7 GB; its header says so before anything is decoded. The same size in 8-bit
+    grey passes the check."""
+    import struct
+    import zlib
+
+    from stablecues.imageio import check_decoded_bytes
+
+    def png(depth: int, colour: int) -> bytes:
+        def chunk(kind: bytes, data: bytes) -> bytes:
+            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+        ihdr = struct.pack(">IIBBBBB", 8192, 8191, depth, colour, 0, 0, 0)
+        idat = chunk(b"IDAT", zlib.compress(b"\0" * 64))
+        return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idat + chunk(b"IEND", b"")
+
+    path = tmp_path / "big.png"
+    path.write_bytes(png(16, 6))
+    with pytest.raises(ImageError, match=r"8192 x 8191 PNG of 8 bytes a pixel decodes to 511 MiB, more than"):
+        read_image(path)
+    check_decoded_bytes(path, png(8, 0), (8192, 8191))  # 64 MiB: within the limit

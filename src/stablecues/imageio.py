@@ -19,13 +19,14 @@ import numpy as np
 
 from .errors import ImageError, InputError
 from .fileio import captured_stderr
-from .limits import MAX_IMAGE_PIXELS
+from .limits import MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "IMAGE_SUFFIXES",
     "ImageMode",
+    "check_decoded_bytes",
     "header_size",
     "image_format",
     "is_image_file",
@@ -103,6 +104,7 @@ def read_image(
     if size is None:
         raise ImageError(f"{p}: not a readable image (a damaged {kind} header)")
     _check_pixels(p, size, max_pixels)
+    check_decoded_bytes(p, buf, size)
     image = _decode(data, flags, p, kind)
     _check_pixels(p, (image.shape[1], image.shape[0]), max_pixels)
     if mode == "rgb":
@@ -128,6 +130,25 @@ def _decode(data: np.ndarray, flags: int, path: Path, kind: str) -> np.ndarray:
     if messages:
         logger.warning("%s: %s", path, messages[0][:200])
     return image
+
+
+# channels a PNG colour type decodes to (OpenCV expands a palette to BGR)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+
+
+def check_decoded_bytes(where: object, data: bytes, size: tuple[int, int]) -> None:
+    """Refuse a PNG whose header says it decodes to more than :data:`MAX_IMAGE_BYTES` (its
+    channels and 16-bit depth count: under the pixel limit a 16-bit RGBA image is 8 bytes a
+    pixel); other formats decode to at most 3 bytes a pixel and the pixel limit bounds them."""
+    if image_format(data) != "PNG" or len(data) < 26:
+        return
+    depth, colour = data[24], data[25]
+    per_pixel = _PNG_CHANNELS.get(colour, 4) * (2 if depth == 16 else 1)
+    need = size[0] * size[1] * per_pixel
+    if need > MAX_IMAGE_BYTES:
+        raise ImageError(f"{where}: a {size[0]} x {size[1]} PNG of {per_pixel} bytes a pixel decodes to "
+                         f"{need >> 20} MiB, more than the {MAX_IMAGE_BYTES >> 20} MiB accepted "
+                         "(stablecues.limits)")
 
 
 def _check_pixels(path: Path, size: tuple[int, int], max_pixels: int) -> None:

@@ -10,6 +10,9 @@ limit                           value            what it bounds (nearest real in
 =============================== ================ =====================================================
 ``MAX_IMAGE_PIXELS``            2^26 (67 Mpx)    a decoded image, from its header before decoding:
                                                  8192 x 8192 (KITTI 1241 x 376, CamVid 960 x 720)
+``MAX_IMAGE_BYTES``             256 MiB          a decoded PNG's bytes from its header (channels x
+                                                 bit depth): a 16-bit RGBA 8192 x 8191 PNG in a bag,
+                                                 1 MB of file, decoded to 1.7 GB
 ``MAX_GT_IMAGE_PIXELS``         2^28 (268 Mpx)   a loop ground truth stored as an N x N image
                                                  (N <= 16384)
 ``MAX_LOOP_FRAMES``             40,000           frames of a dense N x N loop matrix (1.6 GB of bool):
@@ -58,6 +61,7 @@ __all__ = [
     "MAX_CALIBRATION_BYTES",
     "MAX_CSV_FIELD_BYTES",
     "MAX_GT_IMAGE_PIXELS",
+    "MAX_IMAGE_BYTES",
     "MAX_IMAGE_PIXELS",
     "MAX_LOOP_FRAMES",
     "MAX_PICKLE_BYTES",
@@ -72,6 +76,7 @@ __all__ = [
 ]
 
 MAX_IMAGE_PIXELS = 1 << 26
+MAX_IMAGE_BYTES = 1 << 28
 MAX_GT_IMAGE_PIXELS = 1 << 28
 MAX_LOOP_FRAMES = 40_000
 MAX_SIMILARITY_FRAMES = 32_768

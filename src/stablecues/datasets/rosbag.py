@@ -48,7 +48,7 @@ import numpy as np
 from ..errors import CalibrationError, ConfigError, DatasetError, ImageError, reason
 from ..fileio import captured_stderr
 from ..geometry.camera import Calibration, PinholeCamera, Rectification
-from ..imageio import header_size, image_format, to_grey
+from ..imageio import check_decoded_bytes, header_size, image_format, to_grey
 from ..limits import MAX_BAG_METADATA_BYTES, MAX_IMAGE_PIXELS, check_file_size
 from ..trajectory import nearest, ns_to_seconds
 from ..types import Frame
@@ -363,6 +363,7 @@ def image_from_compressed(msg: Any, where: str, *, grey: bool = False) -> np.nda
     if size is None:
         raise ImageError(f"{where}: compressed image with a damaged {kind} header")
     _check_size(where, *size)
+    check_decoded_bytes(where, buf, size)
     with captured_stderr() as printed:
         try:
             image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
