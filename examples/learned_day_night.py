@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     folders = [args.reference] + ([args.revisit] if args.revisit is not None else [])
     traversals = [list_images(f, f"images of {f}")[: args.places] for f in folders]
     detector = LoopDetector(preset(args.preset), database=str(args.map) if args.map else None)
-    start = len(detector)  # frames already in a reopened map: this run numbers on from there
+    start = detector.next_index  # a reopened map: this run numbers on from where it stopped
     first_of = {}  # frame index -> (traversal, place)
     loops, t0 = 0, time.perf_counter()
     index = start

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         names: dict[int, str] = {}
         loops, start = 0, time.perf_counter()
         with detector:
-            first = len(detector)  # a reopened map continues its frame numbers
+            first = detector.next_index  # a reopened map continues its frame numbers
             for i, (name, left, right) in enumerate(stereo_pairs(args.sources), start=first):
                 frame = Frame(index=i, name=name, timestamp=i / args.fps, image=read_grey(left),
                               right=read_grey(right))

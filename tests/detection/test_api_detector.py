@@ -207,3 +207,38 @@ def test_the_extractor_name_picks_the_shipped_vocabulary() -> None:
     det.close()
     assert results[-1].accepted and results[-1].candidate_frame == 0
     assert not any(r.accepted for r in results[:-1])
+
+
+# --- nothing dropped without a word (issue 35) ---------------------------------------------------
+
+
+def test_a_frame_the_calibration_does_not_describe_is_refused() -> None:
+    """A TUM fr1 calibration (640x480) with 320x240 frames: one line naming both sizes."""
+    det = LoopDetector(preset("fast", QUICK), calibration="fr1")
+    want = r"frame 0 \(0\): a 320x240 image, but the calibration .* is for 640x480"
+    with pytest.raises(InputError, match=want):
+        det.process(Frame(index=0, name="0", timestamp=0.0, image=textured()))
+
+
+def test_unused_images_repeated_indices_and_a_short_stream_are_said(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("WARNING")
+    path = tmp_path / "map.sqlite"
+    det = LoopDetector(preset("fast", {"similarity": False}), database=path)
+    img = textured()
+    det.process(Frame(index=0, name="0", timestamp=0.0, image=img, right=img))
+    det.process(Frame(index=1, name="1", timestamp=1.0, image=textured(1), right=img))
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("has a right image but the detector has no calibration" in m for m in said) == 1  # once
+    det.process(Frame(index=1, name="1b", timestamp=2.0, image=textured(2)))
+    said = [r.getMessage() for r in caplog.records]
+    assert any("frame index 1 does not follow the latest stored frame 1" in m for m in said)
+    assert det.next_index == 2
+    caplog.clear()
+    det.close()  # 3 frames, all inside the 20-frame exclusion window
+    assert any("all 3 frames fell inside the exclusion window (query.exclude_recent = 20)" in r.getMessage()
+               for r in caplog.records)
+    with LoopDetector(preset("fast", {"similarity": False}), database=path) as again:
+        assert again.next_index == 2  # where a reopened map continues
+    assert LoopDetector(preset("fast")).next_index == 0

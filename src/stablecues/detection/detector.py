@@ -279,6 +279,8 @@ class LoopDetector:
         metas = [m if isinstance(m, dict) else {} for m in (self.db.column("meta") if n else [])]
         present = self.db.ids() if n else np.zeros(0, np.int64)
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
+        self._index_said = False
+        self._processed = self._close_only = 0  # frames processed, and those with no older entry
         latest = int(present[-1]) if present.size else -1  # the newest entry still in the map
         self._prev_bow: BowVector | None = self.db.entry(latest).bow if latest >= 0 else None
         # scores of the latest entries with their predecessors, and the first entry of the run
@@ -335,7 +337,21 @@ class LoopDetector:
             self._sequence.push(Scored.capped(ids, norm))
 
     def close(self) -> None:
+        """Close the map; a stream whose every frame fell inside the exclusion window (none was
+        ever compared with an earlier one) is said in a logged warning."""
+        if self._processed and self._close_only == self._processed:
+            log.warning("all %d frames fell inside the exclusion window (query.exclude_recent = %d): no "
+                        "frame was compared with an earlier one; on a short stream lower it",
+                        self._processed, self.config.query.exclude_recent)
+            self._processed = 0
         self.db.close()
+
+    @property
+    def next_index(self) -> int:
+        """The frame index a stream continuing this map should give its next frame: one past
+        the latest stored frame's (0 for an empty map), so that a reopened map's second run
+        numbers on where the first stopped."""
+        return self._entry_frames[-1] + 1 if self._entry_frames else 0
 
     def __enter__(self) -> LoopDetector:
         return self
@@ -414,6 +430,7 @@ class LoopDetector:
         Returns:
             the decision, with the stage that decided and the time of every stage.
         """
+        self._check_index(frame)
         prep = self.preparer.prepare(frame, features)
         vlad = self._vlad_of(prep)
         timings, t = prep.timings, time.perf_counter()
@@ -423,6 +440,8 @@ class LoopDetector:
         self._sequence.push(found.current)
         timings["query"] = (time.perf_counter() - t) * 1e3
         status = found.status
+        self._processed += 1
+        self._close_only += status is Status.CLOSE_MATCHES_ONLY
         verification: Verification | None = None
         checked: tuple[Checked, ...] = ()
         if status is None:
@@ -469,6 +488,15 @@ class LoopDetector:
         self._sequence.push(Scored.empty())  # no query: a gap in the sequence, frames stay aligned
         self._store(frame, prep, vlad=vlad)
         return entry
+
+    def _check_index(self, frame: Frame) -> None:
+        """A frame index not after the latest stored one (repeated, or going back: two frames
+        then share an index and a loop's ``candidate_frame`` is ambiguous) is said once."""
+        if self._entry_frames and int(frame.index) <= self._entry_frames[-1] and not self._index_said:
+            log.warning("frame index %d does not follow the latest stored frame %d (repeated or going back; "
+                        "number a continuing stream from detector.next_index); further ones not reported",
+                        int(frame.index), self._entry_frames[-1])
+            self._index_said = True
 
     def _vlad_of(self, prep: PreparedFrame) -> np.ndarray | None:
         """The frame's VLAD vector (``query.vlad``; timed as the stage ``vlad``), else None."""

@@ -21,6 +21,7 @@ It also owns what depends only on the calibration: the 3D noise model and the
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections import deque
 from collections.abc import Callable
@@ -50,6 +51,8 @@ from ..vocabulary import Vocabulary
 from .config import DetectorConfig
 
 __all__ = ["FramePreparer", "PreparedFrame", "Segmenter", "as_calibration"]
+
+log = logging.getLogger(__name__)
 
 Segmenter = Callable[[np.ndarray], SegmentationResult]
 """``image -> SegmentationResult``: the shipped network, or any replacement."""
@@ -164,6 +167,7 @@ class FramePreparer:
         self.vocabulary = vocabulary
         self.calibration = as_calibration(calibration)
         self._loaded: dict[str, Calibration | None] = {}
+        self._unused_said = False  # a right or depth image without a calibration: said once
         self.extractor = make_extractor(config.features)
         if self.extractor.descriptor_kind != vocabulary.descriptor_kind:
             raise ConfigError(
@@ -191,6 +195,28 @@ class FramePreparer:
         if key not in self._loaded:
             self._loaded[key] = as_calibration(own, f"frame {frame.index} calibration")
         return self._loaded[key]
+
+    def _check_frame_against(self, frame: Frame, calib: Calibration | None) -> None:
+        """A frame the calibration cannot describe is refused (its image size differs from the
+        calibration's); a right or depth image that cannot be used without a calibration is
+        said once (the frame runs monocular), never dropped without a word.
+
+        Raises:
+            InputError: naming the frame, both sizes and the calibration's source.
+        """
+        size = calib.left.image_size if calib is not None else None
+        if calib is not None and size is not None and frame.image is not None:
+            h, w = np.asarray(frame.image).shape[:2]
+            if (w, h) != size:
+                raise InputError(f"frame {frame.index} ({frame.name}): a {w}x{h} image, but the calibration "
+                                 f"({calib.source or 'given'}) is for {size[0]}x{size[1]} images")
+        if (calib is None and self.config.verification is not None and not self._unused_said
+                and (frame.right is not None or frame.depth is not None)):
+            what = "right image" if frame.right is not None else "depth image"
+            log.warning("frame %d (%s) has a %s but the detector has no calibration: it runs monocular, "
+                        "its %s unused (give calibration= to the detector or Frame.calibration)",
+                        frame.index, frame.name, what, what)
+            self._unused_said = True
 
     def lifter(self, calib: Calibration) -> StereoLifter:
         """The stereo lifter of a stereo calibration (built once; it caches remap tables)."""
@@ -256,6 +282,7 @@ class FramePreparer:
         laps = _Laps()
         self._frame_certainty = None
         calib = self.calibration_of(frame)
+        self._check_frame_against(frame, calib)
         features = self._given_features(frame, features)
         if features is None:
             if frame.points3d is not None:
