@@ -881,7 +881,29 @@ def bench_speed(configs: Configs, work: Path, network: bool, quick: int | None) 
         cv2.setNumThreads(threads[0])
         set_default_threads(threads[1])
     out["vlad_vote"] = time_vlad_vote(images[:20])
+    out["vlad_vote"]["reopen"] = time_vlad_reopen(images, work)
     out["load_after"] = list(os.getloadavg())
+    return out
+
+
+def time_vlad_reopen(images: list[np.ndarray], work: Path) -> dict[str, Any]:
+    """Reopening a learned map with and without the VLAD vote: the vote reads every entry's
+    stored vector back (from the entry's payload, its descriptors with it), the rest of the
+    reopen reads the latest entries only; ms for the whole map and per entry, median of 3."""
+    path = work / "vlad_reopen.sqlite"
+    with LoopDetector(preset("learned", {"similarity": False}), database=path) as det:
+        for i, img in enumerate(images):
+            det.process(Frame(index=i, name="", timestamp=math.nan, image=img))
+    out: dict[str, Any] = {"entries": len(images)}
+    for label, weight in (("with_vote", 0.35), ("without_vote", 0.0)):
+        times = []
+        for _ in range(3):
+            t = time.perf_counter()
+            cfg = preset("learned", {"similarity": False, "query": {"vlad": weight}})
+            LoopDetector(cfg, database=path).close()
+            times.append(time.perf_counter() - t)
+        out[f"{label}_ms"] = _ms(times)["median"]
+    out["vote_ms_per_entry"] = round((out["with_vote_ms"] - out["without_vote_ms"]) / len(images), 3)
     return out
 
 
@@ -1083,7 +1105,14 @@ def main() -> None:
                            "load_after": list(os.getloadavg())}
     out_path.parent.mkdir(parents=True, exist_ok=True)
     if out_path.is_file():  # the sets and configurations not run this time keep their figures
-        results = merge(json.loads(out_path.read_text()), results, depth=2)
+        old = json.loads(out_path.read_text())
+        if "speed" in results:  # every run's totals kept: this machine drifts between runs
+            history = old.get("speed", {}).get("history", [])
+            results["speed"]["history"] = [*history, {
+                "date": time.strftime("%Y-%m-%d %H:%M"), "load_before": results["speed"]["load_before"],
+                "total_ms": {k: v["total"] for k, v in results["speed"].items()
+                             if isinstance(v, dict) and "total" in v}}]
+        results = merge(old, results, depth=2)
     out_path.write_text(json.dumps(results, indent=2, default=str) + "\n")
     print(f"written {out_path} in {results['last_run']['wall_s']:.0f} s")
 
