@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -44,3 +45,30 @@ def test_an_unexpected_import_error_keeps_its_traceback(monkeypatch: pytest.Monk
     monkeypatch.setitem(sys.modules, "stablecues.trajectory", None)  # a bug, not an optional module
     with pytest.raises(ImportError):
         main(["mav", "gt", "poses.txt", "--out", "gt.png"])
+
+
+@pytest.mark.parametrize(("argv", "want"), [
+    (["rn"], "stablecues: error: argument COMMAND: unknown choice 'rn' (did you mean 'run'?); "
+             "see stablecues --help"),
+    (["run", "x", "--out", "y", "--preset", "lerned"],
+     "stablecues run: error: argument --preset: unknown choice 'lerned' (did you mean 'learned'?); "
+     "see stablecues run --help"),
+    (["map", "chek", "m.sqlite"], "stablecues map: error: argument action: unknown choice 'chek' "
+                                  "(did you mean 'check'?); see stablecues map --help"),
+    (["run", "x", "--out", "y", "--preset", "zzzzzz"], "unknown choice 'zzzzzz'; see stablecues run --help"),
+])
+def test_a_typo_is_one_line_with_the_closest_choice(
+    argv: list[str], want: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 35: a preset or command typo gave argparse's usage block and no suggestion."""
+    with pytest.raises(SystemExit) as ended:
+        main(argv)
+    assert ended.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and want in err, err
+
+
+def test_an_unknown_format_names_the_closest(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "seq").mkdir()
+    assert main(["run", str(tmp_path / "seq"), "--format", "foldr", "--out", str(tmp_path / "r")]) == 1
+    assert "unknown dataset format 'foldr' (did you mean 'folder'?)" in capsys.readouterr().err

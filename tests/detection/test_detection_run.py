@@ -178,7 +178,8 @@ def test_pictures_and_summary_cover_the_whole_resumed_run(
     printed = capsys.readouterr().out
     ref = load_run(reference)
     # the summary counts the whole run, not the resumed part
-    assert f"{FRAMES} frames, {int(ref.accepted.sum())} loops accepted" in printed
+    n = int(ref.accepted.sum())
+    assert f"{FRAMES} frames, {n} loop{'' if n == 1 else 's'} accepted" in printed
     loops = [int(f) for f in ref.frames[ref.accepted]]
     drawn = sorted(int(p.stem.split("_")[1]) for p in (out / "matches").glob("loop_*.png"))
     assert drawn and drawn[0] == loops[0] and drawn[0] < 13  # a loop of the first session is drawn

@@ -13,10 +13,13 @@ its traceback.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
+import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from .. import __version__
 from ..errors import StableCuesError
@@ -54,8 +57,30 @@ COMMANDS: dict[str, str] = {
 }
 
 
+_INVALID_CHOICE = re.compile(r"invalid choice: '(?P<given>[^']*)' \(choose from (?P<choices>.*)\)$")
+
+
+def did_you_mean(given: str, choices: Sequence[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest choice, or "" when none is close."""
+    close = difflib.get_close_matches(given, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose mistakes are one line (no usage block): an unknown choice
+    names the closest one and where the choices are listed."""
+
+    def error(self, message: str) -> NoReturn:
+        m = _INVALID_CHOICE.search(message)
+        if m is not None:
+            choices = re.findall(r"'([^']*)'", m.group("choices"))
+            message = (f"{message[: m.start()]}unknown choice {m.group('given')!r}"
+                       f"{did_you_mean(m.group('given'), choices)}; see {self.prog} --help")
+        self.exit(2, f"{self.prog}: error: {one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="stablecues",
         description="Place recognition and loop-closure detection with memorable, stable cues.",
     )

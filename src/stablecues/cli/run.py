@@ -132,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"resumed at frame {summary.resumed_from}")
     ms = summary.ms_per_frame
     speed = f"{ms:.1f} ms/frame" if ms == ms else "no frame timed"
-    print(f"{summary.frames} frames, {summary.loops} loops accepted, {speed}; {statuses}")
+    loops = "1 loop" if summary.loops == 1 else f"{summary.loops} loops"
+    print(f"{summary.frames} frames, {loops} accepted, {speed}; {statuses}")
     if summary.mask_fallbacks:
         print(f"semantic masking fell back to all features on {summary.mask_fallbacks} frames")
     hint = exclusion_hint(summary, config)

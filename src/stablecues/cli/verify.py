@@ -158,8 +158,8 @@ def run(args: argparse.Namespace) -> int:
 
     decision = "ACCEPTED" if res.accepted else "REJECTED"
     fallback = " (fallback: no 3D points)" if res.fallback else ""
-    print(f"decision:   {decision} by {res.method.value}{fallback}: {res.status.value} "
-          f"(matcher {res.matcher})")
+    why = "" if res.accepted else f": {res.status.value}"  # "accepted by ...: accepted" said nothing
+    print(f"decision:   {decision} by {res.method.value}{fallback}{why} (matcher {res.matcher})")
     print(f"reason:     {res.reason}")
     print(f"matches:    {res.n_matches}   inliers: {res.n_inliers}")
     if res.triangles:

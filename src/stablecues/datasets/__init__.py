@@ -15,6 +15,7 @@ rosbag     ROS 1 .bag, ROS 2 bag folder (metadata.yaml + .db3 / .mcap) or a bare
 
 from __future__ import annotations
 
+import difflib
 import inspect
 import re
 from collections.abc import Callable
@@ -121,7 +122,9 @@ def open_dataset(path: str | Path, format: str = "auto", **options: Any) -> Sequ
     fmt = detect_format(path) if format == "auto" else format
     opener = FORMATS.get(fmt)
     if opener is None:
-        raise ConfigError(f"unknown dataset format {format!r}; known: auto, {', '.join(FORMATS)}")
+        close = difflib.get_close_matches(str(format), ["auto", *FORMATS], n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"unknown dataset format {format!r}{hint}; known: auto, {', '.join(FORMATS)}")
     accepted = set(inspect.signature(opener).parameters) - {"path"}
     unknown = sorted(set(options) - accepted)
     if unknown:

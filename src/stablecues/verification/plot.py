@@ -121,7 +121,8 @@ def plot_verification(
         )
     if title is None:
         decision = "ACCEPTED" if result.accepted else f"REJECTED ({result.status.value})"
-        title = f"{decision} by {result.method.value}: {len(m)} matches, {result.n_inliers} inliers"
+        plural = "match" if len(m) == 1 else "matches"
+        title = f"{decision} by {result.method.value}: {len(m)} {plural}, {result.n_inliers} inliers"
         if result.triangles:
             title += f", {result.n_triangles_agree}/{len(result.triangles)} triangles agree"
     ax.set_title(title, fontsize=9)
