@@ -336,10 +336,11 @@ class LoopDetector:
                                                self._vlad.row(e), prev, limit)
             self._sequence.push(Scored.capped(ids, norm))
 
-    def close(self) -> None:
+    def close(self, *, hint: bool = True) -> None:
         """Close the map; a stream whose every frame fell inside the exclusion window (none was
-        ever compared with an earlier one) is said in a logged warning."""
-        if self._processed and self._close_only == self._processed:
+        ever compared with an earlier one) is said in a logged warning (``hint=False``: not, for
+        a caller that says it its own way or closes after an error)."""
+        if hint and self._processed and self._close_only == self._processed:
             log.warning("all %d frames fell inside the exclusion window (query.exclude_recent = %d): no "
                         "frame was compared with an earlier one; on a short stream lower it",
                         self._processed, self.config.query.exclude_recent)
@@ -357,7 +358,7 @@ class LoopDetector:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        self.close(hint=exc[0] is None)  # after an error the error is what matters
 
     def __len__(self) -> int:
         return len(self.db)

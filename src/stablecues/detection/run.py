@@ -192,7 +192,7 @@ def run_dataset(
         )
     except BaseException:
         if detector is not None:
-            detector.close()
+            detector.close(hint=False)
             if not resume:  # the empty map just made for this run
                 _remove_database(db_path, named=False)
         raise
@@ -212,7 +212,7 @@ def run_dataset(
         writer.release()  # the run can be resumed at once, by this process or another
         raise
     finally:
-        detector.close()
+        detector.close(hint=False)  # the run's summary gives its own hint
     writer.close()
     return _summary(out, saved, start)
 
