@@ -183,3 +183,20 @@ def test_pictures_and_summary_cover_the_whole_resumed_run(
     loops = [int(f) for f in ref.frames[ref.accepted]]
     drawn = sorted(int(p.stem.split("_")[1]) for p in (out / "matches").glob("loop_*.png"))
     assert drawn and drawn[0] == loops[0] and drawn[0] < 13  # a loop of the first session is drawn
+
+
+def test_the_first_frame_s_warm_up_is_reported_apart(
+    dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 35: the first frame loads networks and compiles kernels; averaged into ms/frame it
+    misled. The summary's ms/frame leaves it out and the run's line names it apart."""
+    from stablecues.detection.run import _summary
+
+    out = tmp_path / "run"
+    assert main(["run", str(dataset), "--out", str(out), *OPTIONS, "--max-frames", "6"]) == 0
+    printed = capsys.readouterr().out
+    totals = load_run(out).stage_ms["total"]
+    summary = _summary(out, [], 0)
+    assert summary.first_frame_ms == pytest.approx(totals[0])
+    assert summary.ms_per_frame == pytest.approx(float(np.mean(totals[1:])))
+    assert f"{summary.ms_per_frame:.1f} ms/frame (the first, loading, {totals[0]:.0f} ms, apart)" in printed

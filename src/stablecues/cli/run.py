@@ -132,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"resumed at frame {summary.resumed_from}")
     ms = summary.ms_per_frame
     speed = f"{ms:.1f} ms/frame" if ms == ms else "no frame timed"
+    if ms == ms and summary.frames > 1:
+        speed += f" (the first, loading, {summary.first_frame_ms:.0f} ms, apart)"
     loops = "1 loop" if summary.loops == 1 else f"{summary.loops} loops"
     print(f"{summary.frames} frames, {loops} accepted, {speed}; {statuses}")
     if summary.mask_fallbacks:

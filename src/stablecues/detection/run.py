@@ -60,11 +60,14 @@ class RunSummary:
         frames: frames in the run.
         loops: loops accepted.
         statuses: frames per status.
-        ms_per_frame: mean time per frame (NaN when no frame has a time).
+        ms_per_frame: mean time per frame, the first timed frame left out when there are others
+            (it loads the networks and compiles the kernels: 0.5-10 s); NaN when no frame has a
+            time.
         mask_fallbacks: frames where semantic masking fell back to all features.
         pictures: the match pictures saved.
         resumed_from: the frame this session started at (0 for a new run).
         already_complete: the run was complete before this call; nothing was done.
+        first_frame_ms: the first timed frame's time (the warm-up), apart; NaN when none.
     """
 
     out_dir: Path
@@ -76,6 +79,7 @@ class RunSummary:
     pictures: list[Path] = field(default_factory=list)
     resumed_from: int = 0
     already_complete: bool = False
+    first_frame_ms: float = float("nan")
 
 
 class _DeferredCommit:
@@ -289,16 +293,19 @@ def _summary(out: Path, pictures: list[Path], start: int, *, already: bool = Fal
     totals = run.stage_ms.get("total", np.zeros(0))
     finite = totals[np.isfinite(totals)]
     fallbacks = sum(1 for e in run.extra() if isinstance(e, dict) and e.get("mask_fallback"))
+    first = float(finite[0]) if finite.size else float("nan")
+    rest = finite[1:] if finite.size > 1 else finite  # the warm-up apart
     return RunSummary(
         out,
         len(run),
         int(run.accepted.sum()),
         run.status_counts(),
-        float(finite.mean()) if finite.size else float("nan"),
+        float(rest.mean()) if rest.size else float("nan"),
         fallbacks,
         pictures if pictures else (run.matches if already else []),
         start,
         already,
+        first,
     )
 
 
