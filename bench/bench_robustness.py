@@ -202,10 +202,10 @@ def segment_checks(entries: int = 20_000, features: int = 300) -> dict[str, Any]
     """The ``--segments`` section (see the module's docstring)."""
     import numpy as np
 
+    from dbkit import fill  # tests/ is on the path (above)
     from stablecues.database import Database, DatabaseConfig
     from stablecues.database.files import index_dir
     from stablecues.errors import DatabaseError
-    from stablecues.types import Features
     from stablecues.vocabulary import default_vocabulary
 
     voc = default_vocabulary("orb")
@@ -213,17 +213,10 @@ def segment_checks(entries: int = 20_000, features: int = 300) -> dict[str, Any]
     rng = np.random.default_rng(0)
     try:
         path = work / "map.sqlite"
-        probes = []
+        images = [rng.integers(0, 256, (features, 32), dtype=np.uint8) for _ in range(entries)]
+        probes = [voc.transform(d)[0] for d in images[:: entries // 20]]
         with Database(voc, path, DatabaseConfig(store_descriptors=False)) as db:
-            for i in range(entries):
-                d = rng.integers(0, 256, (features, 32), dtype=np.uint8)
-                bow, fvec = voc.transform(d)
-                kept = Features(np.zeros((features, 2), np.float32), d, np.zeros(features, np.int16),
-                                np.zeros(features, np.float32), np.ones(features, np.float32),
-                                np.full(features, 31.0, np.float32), (640, 480))
-                db.add(bow, fvec, kept)
-                if i % (entries // 20) == 0:
-                    probes.append(bow)
+            fill(db, voc, images)
             db.flush()
         files = sorted(index_dir(path).glob("seg-*.sci"))
         index_bytes = sum(f.stat().st_size for f in files)

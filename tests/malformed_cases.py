@@ -1500,20 +1500,15 @@ def _(d: Path) -> Setup:
 @case("map/segment-body-flipped")
 def _(d: Path) -> Setup:
     """Issue 34: a damaged index file body answered queries; `map check` names it (exit 1)."""
+    from dbkit import fill
     from stablecues.database import Database, DatabaseConfig
     from stablecues.database.files import index_dir
-    from stablecues.types import Features
     from stablecues.vocabulary import default_vocabulary
 
     voc = default_vocabulary("orb")
     rng = np.random.default_rng(0)
     with Database(voc, d / "map.sqlite", DatabaseConfig(tail_postings=2000, store_descriptors=False)) as db:
-        for _ in range(60):
-            desc = rng.integers(0, 256, (100, 32), dtype=np.uint8)
-            bow, fvec = voc.transform(desc)
-            db.add(bow, fvec, Features(np.zeros((100, 2), np.float32), desc, np.zeros(100, np.int16),
-                                       np.zeros(100, np.float32), np.ones(100, np.float32),
-                                       np.full(100, 31.0, np.float32), (640, 480)))
+        fill(db, voc, [rng.integers(0, 256, (100, 32), dtype=np.uint8) for _ in range(60)])
         db.flush()
     seg = sorted(index_dir(d / "map.sqlite").glob("seg-*.sci"))[0]
     raw = bytearray(seg.read_bytes())

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dbkit import fake_features
+from dbkit import fill
 from stablecues.cli.main import main
 from stablecues.database import Database, DatabaseConfig
 from stablecues.database.files import index_dir
@@ -25,9 +25,7 @@ def _map(path: Path) -> list[np.ndarray]:
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, (150, 32), dtype=np.uint8) for _ in range(N)]
     with Database(voc, path, DatabaseConfig(tail_postings=2000, merge_chunk=500)) as db:
-        for d in images:
-            bow, fvec = voc.transform(d)
-            db.add(bow, fvec, fake_features(d))
+        fill(db, voc, images)
         db.flush()
     assert len(sorted(index_dir(path).glob("seg-*.sci"))) >= 2
     return images

@@ -145,7 +145,7 @@ def test_the_vote_finds_the_second_drive_and_a_reopened_map_scores_as_before(tmp
     with LoopDetector(_config(0.0), database=plain) as det:
         _decisions(det, frames[:6])
     with LoopDetector(config, database=plain) as det:
-        assert len(det._vlad or ()) == 6 and det._vlad is not None and det._vlad.prev is not None
+        assert len(det._vlad or ()) == 6 and det._vlad is not None and det._vlad.latest is not None
 
 
 def test_vote_settings_are_checked() -> None:

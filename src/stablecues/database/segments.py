@@ -775,10 +775,13 @@ _VERIFYING = threading.Lock()
 
 
 class SegmentDamaged(DatabaseError):
-    """A persisted segment whose body fails its checksum (``segment``: which one)."""
+    """A persisted segment whose body fails its checksum (``segment``: which one; ``problem``:
+    what :func:`verify_segment` found)."""
 
-    def __init__(self, message: str, segment: Segment) -> None:
-        super().__init__(message)
+    def __init__(self, problem: str, segment: Segment) -> None:
+        super().__init__(f"{problem}: refusing to answer from it (`stablecues map repair` on its map "
+                         "rebuilds it from the entries)")
+        self.problem = problem
         self.segment = segment
 
 
@@ -798,8 +801,7 @@ def ensure_verified(seg: Segment, n_entries: int) -> None:
             return
         problem = verify_segment(seg, n_entries)
         if problem is not None:
-            raise SegmentDamaged(f"{problem}: refusing to answer from it (`stablecues map repair` on its "
-                                 "map rebuilds it from the entries)", seg)
+            raise SegmentDamaged(problem, seg)
         seg.verified = True
 
 

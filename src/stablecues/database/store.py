@@ -764,8 +764,27 @@ class Database:
         hi = len(self) - max(int(exclude_recent), 0)
         if max_id is not None:
             hi = min(hi, int(max_id))
-        ids, scores = self._index_scores(bow, max_id=hi, min_id=min_id)
-        ids, scores = self._in_sessions(ids, scores, sessions, exclude_sessions)
+        ids, scores = self.scored(bow, max_id=hi, min_id=min_id, sessions=sessions,
+                                  exclude_sessions=exclude_sessions)
+        return self.best(ids, scores, max_results)
+
+    def scored(
+        self,
+        bow: BowVector,
+        max_id: int | None = None,
+        min_id: int = 0,
+        *,
+        sessions: int | Iterable[int] | None = None,
+        exclude_sessions: int | Iterable[int] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every entry sharing a word with ``bow`` (filters as :meth:`query`), in id order, and
+        its score: what :meth:`query` ranks, for a caller that needs more than the best."""
+        ids, scores = self._index_scores(bow, max_id=max_id, min_id=min_id)
+        return self._in_sessions(ids, scores, sessions, exclude_sessions)
+
+    def best(self, ids: np.ndarray, scores: np.ndarray, max_results: int) -> list[QueryResult]:
+        """The ``max_results`` best of :meth:`scored`'s entries (<= 0: all), best first (ties:
+        lower ids first), as :meth:`query` returns them."""
         if ids.size == 0:
             return []
         key = -scores if self._higher_better else scores
@@ -788,7 +807,7 @@ class Database:
             except SegmentDamaged as exc:
                 if self.readonly or self.path is None or self._writer is None:
                     raise
-                log.warning("%s; rebuilding it from the entries", exc.args[0].split(": refusing")[0])
+                log.warning("%s; rebuilding it from the entries", exc.problem)
                 with self._add_lock:
                     if exc.segment in self.index.segments:
                         self._rebuild([exc.segment])
@@ -818,8 +837,7 @@ class Database:
     ) -> np.ndarray:
         """Dense (len(self),) float64 scores of the query against every entry (0 when no word
         is shared, or the entry is removed or left out by the session filters; for KL, +inf)."""
-        ids, s = self._index_scores(bow, max_id=max_id)
-        ids, s = self._in_sessions(ids, s, sessions, exclude_sessions)
+        ids, s = self.scored(bow, max_id=max_id, sessions=sessions, exclude_sessions=exclude_sessions)
         n = len(self)
         out = np.zeros(n) if self._higher_better else np.full(n, np.inf)
         out[ids] = s

@@ -327,13 +327,15 @@ class LoopDetector:
                 self._sequence.push(Scored.empty())
                 continue
             bow = self.db.entry(e).bow
-            results = self.db.query(bow, max_results=q.max_results, max_id=limit)
+            scored = self.db.scored(bow, max_id=limit)
+            results = self.db.best(*scored, q.max_results)
             ids = np.array([r.entry_id for r in results], np.int64)
-            norm = np.array([r.score for r in results]) / float(ns)
-            if self._vlad is not None and ids.size:
-                prev = self._vlad.row(e - 1) if e >= 1 else None
-                ids, _, norm = self._vlad.fuse(self.db, bow, ids, norm * float(ns), float(ns),
-                                               self._vlad.row(e), prev, limit)
+            raw = np.array([r.score for r in results])
+            norm = raw / float(ns)
+            vector = self._vlad.row(e) if self._vlad is not None else None
+            if self._vlad is not None and vector is not None and ids.size:
+                ids, _, norm = self._vlad.fuse(self.db, ids, raw, float(ns), vector, self._vlad.row(e - 1),
+                                               limit, scored)
             self._sequence.push(Scored.capped(ids, norm))
 
     def close(self, *, hint: bool = True) -> None:
@@ -684,7 +686,8 @@ class LoopDetector:
         if hi <= 0:
             out.status = Status.CLOSE_MATCHES_ONLY
             return out
-        results = self.db.query(bow, max_results=q.max_results, max_id=hi)
+        scored = self.db.scored(bow, max_id=hi)  # one pass of the index, for the vote too
+        results = self.db.best(*scored, q.max_results)
         if not results:
             out.status = Status.NO_DB_RESULTS
             return out
@@ -701,7 +704,7 @@ class LoopDetector:
                 return out
         norm = raw / ns
         if self._vlad is not None and vlad is not None:
-            ids, raw, norm = self._vlad.fuse(self.db, bow, ids, raw, ns, vlad, self._vlad.prev, hi)
+            ids, raw, norm = self._vlad.fuse(self.db, ids, raw, ns, vlad, self._vlad.latest, hi, scored)
         out.results = [(int(e), float(v)) for e, v in zip(ids, norm, strict=True)]
         out.raw_of = {int(e): float(v) for e, v in zip(ids, raw, strict=True)}
         out.current = Scored.capped(ids, norm)

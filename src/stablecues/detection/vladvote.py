@@ -22,7 +22,7 @@ import numpy as np
 
 from ..database import Database
 from ..errors import ConfigError, ModelError
-from ..types import BowVector, DescriptorKind
+from ..types import DescriptorKind
 from ..vocabulary.vlad import VladCodebook, default_codebook, load_codebook
 from .config import DetectorConfig
 
@@ -47,7 +47,6 @@ class VladVote:
         self._rows = np.zeros((0, codebook.size), np.float32)
         self._usable = np.zeros(0, bool)  # the entry has a vector (not removed, not empty)
         self._n = 0
-        self.prev: np.ndarray | None = None  # the previous stored frame's vector
 
     @classmethod
     def of(cls, config: DetectorConfig, descriptor_kind: DescriptorKind) -> VladVote | None:
@@ -76,9 +75,14 @@ class VladVote:
     def __len__(self) -> int:
         return self._n
 
-    def row(self, entry: int) -> np.ndarray:
-        """An entry's vector."""
-        return self._rows[entry]
+    def row(self, entry: int) -> np.ndarray | None:
+        """An entry's vector (None before the first entry)."""
+        return self._rows[entry] if 0 <= entry < self._n else None
+
+    @property
+    def latest(self) -> np.ndarray | None:
+        """The latest stored entry's vector (the previous frame's, for the next query)."""
+        return self.row(self._n - 1)
 
     def encode(self, descriptors: np.ndarray) -> np.ndarray:
         """A frame's vector, rounded to float16 as the entry keeps it (so a reopened map scores
@@ -100,7 +104,6 @@ class VladVote:
         self._rows[self._n] = vector
         self._usable[self._n] = bool(np.any(vector != 0))
         self._n += 1
-        self.prev = self._rows[self._n - 1]
 
     def restore(self, db: Database, present: np.ndarray) -> None:
         """The vectors of a reopened map's entries: stored ones read, missing ones (a map made
@@ -120,21 +123,22 @@ class VladVote:
         if computed:
             log.warning("%s: %d entries had no VLAD vector of this codebook; computed from their stored "
                         "descriptors", db.path if db.path is not None else "map", computed)
-        self.prev = self._rows[self._n - 1] if self._n else None
 
     def fuse(
-        self, db: Database, bow: BowVector, ids: np.ndarray, raw: np.ndarray, ns: float,
-        vector: np.ndarray, prev: np.ndarray | None, hi: int,
+        self, db: Database, ids: np.ndarray, raw: np.ndarray, ns: float, vector: np.ndarray,
+        prev: np.ndarray | None, hi: int, scored: tuple[np.ndarray, np.ndarray],
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fused candidates of a query (see the module docstring).
 
         Args:
-            db: the map (BoW scores of the VLAD-only candidates).
-            bow: the query's BoW vector.
-            ids, raw: the BoW results (entry ids, raw scores).
+            db: the map (which entries are removed).
+            ids, raw: the BoW results (entry ids, raw scores), best first.
             ns: the BoW normaliser (the score with the previous frame; 1 without it).
             vector: the query's VLAD vector; prev: the previous frame's (None: BoW alone).
             hi: only entries with id < hi.
+            scored: every entry sharing a word with the query and its raw score
+                (:meth:`Database.scored`, the pass the BoW results came from): the BoW scores
+                of the VLAD-only candidates.
 
         Returns:
             (ids, raw BoW scores, fused scores), best first, at most ``max_results`` long.
@@ -159,7 +163,10 @@ class VladVote:
         k = min(self.max_results, int(usable.sum()))
         top = np.flatnonzero(usable)[np.argpartition(-sims[usable], k - 1)[:k]]
         union = np.union1d(ids.astype(np.int64), top.astype(np.int64))
-        raw_all = db.scores(bow, max_id=hi)
+        every_ids, every_raw = scored
+        inside = every_ids < hi
+        raw_all = np.zeros(hi)  # 0: no word shared (as Database.scores gives it)
+        raw_all[every_ids[inside]] = every_raw[inside]
         raw_u = raw_all[union]
         fused = (1.0 - self.weight) * (raw_u / ns) + self.weight * v[union]
         order = np.lexsort((union, -fused))[: self.max_results]
