@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import check_output, write_output
 
     if args.json is not None:
-        check_output(args.json, "the report (--json)")
+        check_output(args.json, "report")
     vocabulary = vocabulary_from_args(args)
     report = check_map(args.map, vocabulary, repair=args.action == "repair",
                        vocabulary_source=str(args.vocab) if args.vocab is not None else "given")
@@ -58,5 +58,5 @@ def run(args: argparse.Namespace) -> int:
                "present": report.present, "sessions": report.sessions, "segments": report.segments,
                "warnings": report.warnings, "problems": report.problems, "repaired": report.repaired,
                "ok": report.ok}
-        write_output(args.json, json.dumps(doc, indent=2) + "\n", "the report (--json)")
+        write_output(args.json, json.dumps(doc, indent=2) + "\n", "report")
     return 0 if report.ok or report.repaired else 1
