@@ -288,3 +288,42 @@ def test_a_damaged_segment_body_never_answers(
         assert db.check() == []
     with Database(voc, path, readonly=True) as reader:
         assert answers(reader, voc, many_images) == before
+
+
+@pytest.mark.parametrize("first", ["merge", "compact"])
+def test_a_damaged_segment_met_first_by_maintenance_is_rebuilt(
+    first: str, voc: Vocabulary, many_images: list[np.ndarray], tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A damaged segment body met first by a merge (adds, no query) or by `compact` stopped the
+    index's maintenance for the rest of the session ("index maintenance stopped"): the writer
+    now rebuilds it from the entries as a query would, and the merges go on."""
+    path = tmp_path / "map.sqlite"
+    cfg = DatabaseConfig(tail_postings=500)
+    half = len(many_images) // 2
+    build_map(path, voc, many_images[:half], cfg)
+    victim = _segment_files(path)[0]
+    raw = bytearray(victim.read_bytes())
+    raw[128 + 8 * 3 + 5] ^= 0x40  # a weight of the 4th posting
+    victim.write_bytes(bytes(raw))
+    caplog.set_level(logging.WARNING)
+    with Database(voc, path, cfg) as db:
+        if first == "merge":
+            fill(db, voc, many_images[half:], start=half)
+            db.flush()
+        else:
+            db.remove([3])
+            db.compact()
+            fill(db, voc, many_images[half:], start=half)
+            db.flush()
+        messages = [r.getMessage() for r in caplog.records]
+        assert any(str(victim) in m and "rebuilding" in m for m in messages), messages
+        assert not any("maintenance stopped" in m for m in messages), messages
+        assert db.check() == []
+        got = answers(db, voc, many_images)
+    expected_path = tmp_path / "clean.sqlite"
+    with Database(voc, expected_path, cfg) as clean:
+        fill(clean, voc, many_images)
+        if first == "compact":
+            clean.remove([3])
+        assert got == answers(clean, voc, many_images)

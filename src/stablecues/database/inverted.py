@@ -40,6 +40,7 @@ from .segments import (
     MemorySink,
     MergeJob,
     Segment,
+    SegmentDamaged,
     Sink,
     empty_postings,
     ensure_verified,
@@ -384,7 +385,7 @@ class InvertedIndex:
                     self._start([s])
                     return
         run = self._mergeable(segs)
-        if run:
+        if run and self._sound(run):
             self._start(run)
 
     def _mergeable(self, segs: list[Segment]) -> list[Segment]:
@@ -404,9 +405,28 @@ class InvertedIndex:
             i = j
         return []
 
+    def _sound(self, inputs: list[Segment]) -> bool:
+        """Check the bodies of segments about to be merged (a damaged file merged would come out
+        under a fresh checksum). A damaged one is rebuilt from the entries when the index has a
+        store (the writer; a warning names it) and False returned: plan again. Without a store
+        the damage is raised."""
+        for seg in inputs:
+            try:
+                ensure_verified(seg, self.n_entries)
+            except SegmentDamaged as exc:
+                if self.store is None:
+                    raise
+                log.warning("%s; rebuilding it from the entries", exc.problem)
+                try:
+                    self._replace_from_store([seg])
+                except Exception as exc2:  # noqa: BLE001 - queries then refuse the segment in one line
+                    log.error("index maintenance stopped: %s", exc2)
+                    self._broken = exc2
+                    self._changed.notify_all()
+                return False
+        return True
+
     def _start(self, inputs: list[Segment], alive: np.ndarray | None = None) -> _Job:
-        for seg in inputs:  # a damaged file merged would come out under a fresh checksum
-            ensure_verified(seg, self.n_entries)
         factory = self.store.sink if self.store is not None else self._memory_sink
         job = _Job(inputs, merge=MergeJob(inputs, factory, self.n_words, self.chunk, alive,
                                           reader=getattr(self.store, "reader", None)))
@@ -550,6 +570,8 @@ class InvertedIndex:
                     continue
                 if self._alive is None or not self._segments:
                     return
+                if not self._sound(list(self._segments)):
+                    continue
                 job = self._start(list(self._segments), self._alive)
                 job.claimed = True
                 break
