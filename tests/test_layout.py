@@ -207,3 +207,20 @@ def test_frame_is_one_type() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # these old paths are plain re-exports: no warning
         assert BaseFrame is DatasetsFrame is stablecues.Frame
+
+
+PACKAGES = sorted(name for name in MODULES if name.count(".") == 1 and MODULES[name].name == "__init__.py")
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_every_name_a_package_lists_resolves(package: str) -> None:
+    """Package namespaces import their names on first use (``stablecues._lazy``): each name of
+    ``__all__`` must still come from the module that gives it, and show in ``dir()``."""
+    mod = importlib.import_module(package)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not through a deprecated alias
+        for name in getattr(mod, "__all__", []):
+            assert getattr(mod, name) is not None, f"{package}.{name}"
+            assert name in dir(mod), f"{package}.{name}"
+    with pytest.raises(AttributeError):
+        _ = mod.no_such_name_here

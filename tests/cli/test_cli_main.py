@@ -72,3 +72,35 @@ def test_an_unknown_format_names_the_closest(tmp_path: Path, capsys: pytest.Capt
     (tmp_path / "seq").mkdir()
     assert main(["run", str(tmp_path / "seq"), "--format", "foldr", "--out", str(tmp_path / "r")]) == 1
     assert "unknown dataset format 'foldr' (did you mean 'folder'?)" in capsys.readouterr().err
+
+
+def test_help_builds_only_the_command_asked_for() -> None:
+    """`stablecues --help` and a command's `--help` took about a second: every command's parser
+    was built, and describing presets and extractors imported the detector, SciPy and numba.
+    Only the named command's parser is built now, from data modules: building the parsers of
+    `stablecues --help` and of these commands imports neither numpy nor the detector (issue 35;
+    bench/bench_cli.py times them)."""
+    import subprocess
+    import sys
+
+    light = ["run", "sweep", "vocab", "verify", "map", "eval", "report", "results", "info", "synth", "demo",
+             "segment", "mav"]
+    code = (
+        "import sys\nfrom stablecues.cli.main import build_parser\n"
+        f"for full in [set()] + [{{c}} for c in {light!r}]:\n"
+        "    parser = build_parser(full)\n"
+        "    parser.format_help()\n"
+        "    for sub in full:  # what `stablecues SUB --help` prints\n"
+        "        parser._subparsers._group_actions[0].choices[sub].format_help()\n"
+        "print(sorted(m for m in ('numpy', 'scipy', 'numba', 'cv2', 'stablecues.detection.detector') "
+        "if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    from stablecues.cli.commands import COMMANDS
+    from stablecues.cli.main import build_parser
+
+    every = build_parser()  # all of them in full still build
+    for name in COMMANDS:
+        assert name in every.format_help()

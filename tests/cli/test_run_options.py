@@ -172,3 +172,28 @@ def test_non_finite_settings_and_huge_sweeps_are_refused_in_one_line(
         override_sets([], [f"query.alpha=[0.1, 0.2, 0.3, {k}]" for k in range(10)])
     grid = override_sets(["query.refine=0"], ["query.alpha=[0.1, 0.2]", "query.island_gap=[2, 3, 4]"])
     assert len(grid) == 6
+
+
+def test_run_calib_gives_the_decisions_of_calib_yaml(tmp_path: Path) -> None:
+    """`run --calib FILE` (issue 35): a folder whose calibration lies elsewhere gives the same
+    decisions, with the same 3D points from its depth images (the file's DepthMapFactor
+    included), as the same folder with the file as its calib.yaml; the run records the file."""
+    from stablecues.synthetic import SyntheticTownConfig, write_sequence
+
+    config = SyntheticTownConfig(frames=16, width=256, height=192, seed=3)
+    seq = write_sequence(config, tmp_path / "seq", labels=False, progress=False)
+    cam = tmp_path / "elsewhere" / "cam.yaml"
+    cam.parent.mkdir()
+    (seq / "calib.yaml").rename(cam)
+    options = ["--preset", "fast", "--no-progress", "--pictures", "0", "--set", "query.exclude_recent=3"]
+    assert main(["run", str(seq), "--out", str(tmp_path / "given"), "--calib", str(cam), *options]) == 0
+    (seq / "calib.yaml").write_bytes(cam.read_bytes())
+    assert main(["run", str(seq), "--out", str(tmp_path / "own"), *options]) == 0
+    given, own = _decisions(tmp_path / "given"), _decisions(tmp_path / "own")
+    for name in given:
+        np.testing.assert_array_equal(given[name], own[name], err_msg=name)
+    run = load_run(tmp_path / "given")
+    assert run.meta["calibration"] == str(cam)
+    assert {e.get("points") for e in run.extra()} == {"depth"}
+    assert main(["run", str(seq), "--out", str(tmp_path / "bad"), "--calib", str(tmp_path / "none.yaml"),
+                 *options]) == 1

@@ -139,3 +139,42 @@ def test_read_settings_value(tmp_path: Path) -> None:
     assert read_settings_value(path, "Camera") is None  # whole keys only, no prefix match
     with pytest.raises(DatasetError, match="settings file not found"):
         read_settings_value(tmp_path / "absent.yaml", "x")
+
+
+def test_frames_folder_with_labels_and_gt_png_beside_it(tmp_path: Path) -> None:
+    """CamVid revisit sets keep their images in frames/ (JPEG), labels/ (PNG, same stems) and
+    gt.png beside them: `info` failed on labels/ (gt.png was read as a frame, issue 35). The
+    frames folder is read as images/ is, and a gt.* beside it is the loop ground truth."""
+    for k in range(3):
+        _img(tmp_path / "frames" / f"{k + 1:04d}.jpg", 20 * k, (6, 8, 3))
+        _img(tmp_path / "labels" / f"{k + 1:04d}.png", k)
+    gt = np.zeros((3, 3), np.uint8)
+    gt[2, 0] = 255
+    cv2.imwrite(str(tmp_path / "gt.png"), gt)
+    ds = open_dataset(tmp_path)
+    assert ds.format == "folder" and len(ds) == 3
+    assert [r.image.name for r in ds.records] == ["0001.jpg", "0002.jpg", "0003.jpg"]
+    assert ds.records[2].labels == tmp_path / "labels" / "0003.png"
+    assert ds.ground_truth_path() == tmp_path / "gt.png"
+    truth = ds.ground_truth()
+    assert truth is not None and truth.matrix[2, 0] and truth.matrix.sum() == 1
+
+
+def test_a_folder_of_datasets_names_its_folders(tmp_path: Path) -> None:
+    """A folder holding datasets (../shared/data/tum) is no dataset: the one line names what it
+    holds instead of only saying that no image was found."""
+    for name in ("fr2_desk", "fr3_office"):
+        _img(tmp_path / name / "rgb" / "1.png", 1)
+    with pytest.raises(DatasetError, match=r"no images here, only folders \(fr2_desk, fr3_office\)"):
+        open_dataset(tmp_path)
+
+
+def test_info_on_the_real_revisit_sets(capsys: pytest.CaptureFixture[str]) -> None:
+    from conftest import shared_path
+    from stablecues.cli.main import main
+
+    for name in ("val_drive", "train_drives"):
+        root = shared_path("camvid_revisit_dev", name)
+        assert main(["info", str(root)]) == 0
+        out = capsys.readouterr().out
+        assert f"ground truth: {root / 'gt.png'}" in out

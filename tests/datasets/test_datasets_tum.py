@@ -71,6 +71,11 @@ def test_tum_timestamp_names_and_calibration(tmp_path: Path) -> None:
     _img(seq / "frame.png", 1, (4, 4, 3))
     with pytest.raises(DatasetError, match="images named by timestamp .* found 'frame.png'"):
         open_dataset(seq, format="tum")
+    numbered = tmp_path / "numbered"  # frame numbers are no times: none made up (issue 35)
+    for k in (1, 2, 10):
+        _img(numbered / f"{k}.png", k, (4, 4, 3))
+    with pytest.raises(DatasetError, match="images named by timestamp .* found '1.png'"):
+        open_dataset(numbered, format="tum")
 
 
 def test_tum_malformed_lists(tmp_path: Path) -> None:

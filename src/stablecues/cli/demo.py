@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .commands import summary
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("demo", help="run the whole system on built-in synthetic data")
+    p = subparsers.add_parser("demo", help=summary("demo"))
     p.add_argument("--out", type=Path, default=Path("stablecues-demo"),
                    help="folder for the sequence, runs and report (default ./stablecues-demo)")
     p.add_argument("--frames", type=int, default=240, help="frames of the synthetic drive (default 240)")

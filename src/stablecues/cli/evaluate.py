@@ -6,11 +6,13 @@ import argparse
 from pathlib import Path
 from typing import cast
 
+from .commands import summary
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "eval",
-        help="evaluate a run directory against loop ground truth",
+        help=summary("eval"),
         description="Recall at 100 % precision (swept over every distinct score), the PR curve, its area, "
         "the counts, the loss funnel (for each positive query, the stage where its true loop was lost) "
         "and the per-stage timing of a run. Writes eval_<protocol>.json into the run directory.",

@@ -9,13 +9,14 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .commands import summary
 from .options import FORMAT_HELP, add_rosbag_options, is_rosbag, rosbag_options
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "info",
-        help="list a ROS bag's topics (and which a run would read), or summarise a dataset folder",
+        help=summary("info"),
         description="For a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder): every topic with its type, "
         "message count, rate and image size, then the image topics, stamps and CameraInfo that "
         "'stablecues run BAG' would use. For a dataset folder: its format, frames and files.",

@@ -18,11 +18,12 @@ import importlib
 import logging
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import NoReturn
 
 from .. import __version__
 from ..errors import StableCuesError
+from .commands import COMMANDS
 
 # optional top-level modules -> the install command that brings them (pyproject's extras)
 OPTIONAL = {
@@ -38,24 +39,6 @@ OPTIONAL = {
     "rosbags": 'pip install "stablecues[rosbag]"',
     "rerun": 'pip install "stablecues[rerun]"',
 }
-
-# command name -> module of this package that implements it
-COMMANDS: dict[str, str] = {
-    "demo": "demo",
-    "vocab": "vocab",
-    "segment": "segment",
-    "verify": "verify",
-    "run": "run",
-    "eval": "evaluate",
-    "results": "results",
-    "report": "report",
-    "synth": "synth",
-    "mav": "mav",
-    "info": "info",
-    "sweep": "sweep",
-    "map": "mapcmd",
-}
-
 
 _INVALID_CHOICE = re.compile(r"invalid choice: '(?P<given>[^']*)' \(choose from (?P<choices>.*)\)$")
 
@@ -79,7 +62,20 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {one_line(message)}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_of(argv: Sequence[str]) -> str | None:
+    """The command an argument list names: its first word that is not an option (the top
+    level's own options take no value), or None."""
+    for arg in argv:
+        if arg == "--":
+            return None
+        if not arg.startswith("-"):
+            return arg
+    return None
+
+
+def build_parser(full: Collection[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser, with the options of the commands in ``full`` (None: every
+    command's) and the other commands by name and summary only."""
     parser = OneLineParser(
         prog="stablecues",
         description="Place recognition and loop-closure detection with memorable, stable cues.",
@@ -87,7 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"stablecues {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, module_name in COMMANDS.items():
+    for name, (module_name, summary) in COMMANDS.items():
+        if full is not None and name not in full:
+            sub.add_parser(name, help=summary)
+            continue
         try:
             module = importlib.import_module(f"{__package__}.{module_name}")
         except ModuleNotFoundError as exc:
@@ -132,7 +131,9 @@ def missing_dependency_hint(exc: ImportError) -> str | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = command_of(argv)
+    parser = build_parser({command} if command in COMMANDS else set())
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),

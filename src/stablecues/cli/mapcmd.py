@@ -7,13 +7,14 @@ import json
 import sys
 from pathlib import Path
 
+from .commands import summary
 from .options import add_vocabulary_option, vocabulary_from_args
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "map",
-        help="check a map file (what it holds, what is damaged) or repair it",
+        help=summary("map"),
         description="check: open the map read-only and report its entries, sessions and index "
         "segments, the entry-log records that could not be recovered, index files that fail their "
         "checksums, entry ids without a row, and SQLite's integrity check (exit status 1 when "

@@ -14,9 +14,8 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-import numpy as np
-
 from ..errors import InputError
+from .commands import summary
 
 if TYPE_CHECKING:
     from ..mav import FlightLog, NavSolution
@@ -25,7 +24,7 @@ if TYPE_CHECKING:
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "mav",
-        help="drone flight logs: plots, EKF poses per camera frame, loop ground truth",
+        help=summary("mav"),
         description="Read ArduPilot dataflash (.bin/.log), PX4 ULog (.ulg) or CSV GNSS tracks; fuse "
         "IMU, GNSS, barometer and compass into poses; pair them with camera frames; build loop "
         "ground truth; draw the flight figures.",
@@ -162,6 +161,8 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _plot(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ..mav import run_ekf
     from ..mav.plots import save_flight_figures
 
@@ -224,6 +225,8 @@ def _poses(args: argparse.Namespace) -> int:
 
 def _poses_at_rate(args: argparse.Namespace, solution: NavSolution) -> int:
     """Body poses at ``--rate`` over the solution's span (no camera frames given)."""
+    import numpy as np
+
     from ..geometry.rotations import matrix_to_quat
     from ..mav.geo import R_ENU_NED
     from ..mav.poses import pose_matrices
@@ -252,6 +255,8 @@ def _poses_at_rate(args: argparse.Namespace, solution: NavSolution) -> int:
 
 
 def _gt(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ..geometry.rotations import matrix_to_quat
     from ..mav.loops import loops_from_trajectory
     from ..mav.plots import loop_figure

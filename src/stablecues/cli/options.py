@@ -50,7 +50,7 @@ def extractor_from_args(args: argparse.Namespace) -> ExtractorConfig:
 def presets_epilog() -> str:
     """The detector presets, one line each (``name  description``), for a parser's epilog
     (use ``formatter_class=argparse.RawDescriptionHelpFormatter`` to keep the lines)."""
-    from ..detection import DEFAULT_PRESET, describe_preset, preset_names
+    from ..detection.presets import DEFAULT_PRESET, describe_preset, preset_names
 
     names = preset_names()
     width = max(len(n) for n in names)
@@ -60,7 +60,7 @@ def presets_epilog() -> str:
 
 def add_preset_option(parser: argparse.ArgumentParser) -> None:
     """``--preset NAME``: one of the detector presets (list them with :func:`presets_epilog`)."""
-    from ..detection import DEFAULT_PRESET, preset_names
+    from ..detection.presets import DEFAULT_PRESET, preset_names
 
     parser.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(), metavar="NAME",
                         help=f"detector preset, one of those listed below (default {DEFAULT_PRESET})")
@@ -98,6 +98,17 @@ def add_progress_option(parser: argparse.ArgumentParser) -> None:
 
 #: what --format takes (the dataset readers of stablecues.datasets)
 FORMAT_HELP = "auto | folder | tum | kitti | euroc | fabmap | vprbench | rosbag (default auto)"
+
+#: the folder format's layout, for the epilog of the commands that read datasets
+FOLDER_LAYOUT = """\
+folder layout (--format folder; everything but the images optional):
+  DIR/images/ (or DIR/frames/, or DIR itself)  the images, in name order (digit runs as numbers)
+  DIR/right/  DIR/depth/  DIR/labels/          the same names: right image, 16-bit depth, class ids
+  DIR/times.txt  DIR/poses.txt                 one timestamp (s) / TUM pose (t x y z qx qy qz qw) a line
+  DIR/calib.yaml                               ORB-SLAM settings (Camera.fx, ..., Camera.bf,
+                                               DepthMapFactor); --calib FILE takes another
+  DIR/loops.npy (or gt.npy, gt.png)            loop ground truth, N x N
+"""
 
 
 #: the ROS-bag options and their defaults (an option off its default is "given")

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .commands import summary
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "report",
-        help="static HTML report of evaluated runs",
+        help=summary("report"),
         description="PR curves of all runs (whole and zoomed), per run the loss funnel, the similarity "
         "matrix beside the ground truth, every accepted loop (thumbnails marked true / false with the "
         "verifier that ran; click to enlarge), decisions per status and timing tables. Plots are "

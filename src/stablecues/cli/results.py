@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .commands import summary
+
 COLUMNS = (
     "run",
     "preset",
@@ -31,7 +33,7 @@ COLUMNS = (
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "results",
-        help="one table across evaluated runs",
+        help=summary("results"),
         description="Collect the eval_*.json files of run directories into one table.",
     )
     p.add_argument("run_dirs", type=Path, nargs="+", metavar="RUN_DIR")

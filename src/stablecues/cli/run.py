@@ -8,7 +8,9 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .commands import summary
 from .options import (
+    FOLDER_LAYOUT,
     FORMAT_HELP,
     add_preset_option,
     add_progress_option,
@@ -28,13 +30,17 @@ if TYPE_CHECKING:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "run", help="detect loops over a dataset and write a run directory",
+        "run", help=summary("run"),
         description="Run the loop detector over a dataset's frames in order and write a run directory "
                     "(decisions.csv, similarity matrix, timings, match pictures) for `stablecues eval`.",
-        epilog=presets_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"{FOLDER_LAYOUT}\n{presets_epilog()}", formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", type=Path, help="dataset folder or ROS bag")
     p.add_argument("--format", default="auto", help=FORMAT_HELP)
+    p.add_argument("--calib", metavar="FILE",
+                   help="camera calibration to use instead of the dataset's own (for a folder: in place "
+                        "of DIR/calib.yaml): an ORB-SLAM settings yaml, a KITTI calib.txt, an EuRoC "
+                        "sensor.yaml (its cam1 found beside it) or a TUM camera name fr1 / fr2 / fr3")
     add_rosbag_options(p)
     add_preset_option(p)
     add_vocabulary_option(p)
@@ -103,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     config = preset(args.preset, parse_overrides(args.set))
     vocabulary = vocabulary_from_args(args)
     bag = rosbag_options(args) if is_rosbag(args) else {}
+    if args.calib is not None:
+        bag["calibration"] = args.calib
     dataset = open_dataset(args.dataset, format=args.format, **bag)
     gt = args.gt if args.gt is not None else dataset.ground_truth_path()
     described = dataset.describe() if hasattr(dataset, "describe") else {}

@@ -9,14 +9,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .commands import summary
 from .options import add_extractor_options, extractor_from_args
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
-    from ..semantics.masking import MODES
+    from ..semantics.modes import MODES
 
     p: argparse.ArgumentParser = subparsers.add_parser(
-        "segment", help="semantic segmentation: train, eval, export, image"
+        "segment", help=summary("segment")
     )
     sub = p.add_subparsers(dest="segment_command", metavar="ACTION")
 

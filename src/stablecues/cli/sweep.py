@@ -10,13 +10,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .commands import summary
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     from ..detection import preset_names
 
     p = subparsers.add_parser(
         "sweep",
-        help="run a grid of datasets x presets as tasks on a Dask cluster, into one table",
+        help=summary("sweep"),
         description="Each cell is 'stablecues run' (then 'stablecues eval' when the dataset's ground truth "
         "is known) into OUT/<dataset>__<preset>[__<override-tag>]/; the merged table is OUT/sweep.csv and "
         "OUT/sweep.json. Runs on a local cluster of worker processes by default, on any cluster with "

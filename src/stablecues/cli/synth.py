@@ -9,11 +9,13 @@ import argparse
 import json
 from pathlib import Path
 
+from .commands import summary
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "synth",
-        help="write a synthetic town drive with revisits (stereo, depth, labels, poses, loop truth)",
+        help=summary("synth"),
         description="Render a drive through a procedural town that revisits its streets in another "
         "lane, the other way round and at other times of day, with other cars and people. Writes "
         "images/, right/, depth/ (16-bit PNG), labels/ (CamVid ids), times.txt, poses.txt (TUM), "

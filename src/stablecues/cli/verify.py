@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .commands import summary
 from .options import add_extractor_options, extractor_from_args
 
 if TYPE_CHECKING:
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "verify",
-        help="verify that two images show the same place (triangles, PnP or fundamental matrix)",
+        help=summary("verify"),
         description=(
             "Verify image A (the query) against image B (the candidate). With stereo or depth, "
             "keypoints are lifted to 3D and the paper's triangle check runs, then PnP gives the "

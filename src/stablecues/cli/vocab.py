@@ -9,6 +9,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .commands import summary
 from .options import add_extractor_options, extractor_from_args
 
 if TYPE_CHECKING:
@@ -20,7 +21,7 @@ DEFAULT_NAME = "default"
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("vocab", help="train, convert or describe a vocabulary")
+    p = subparsers.add_parser("vocab", help=summary("vocab"))
     sub = p.add_subparsers(dest="vocab_command", metavar="ACTION", required=True)
     shipped = (f"'{DEFAULT_NAME}' (the shipped ORB vocabulary) or '{DEFAULT_NAME}:NAME' (the one "
                "shipped for extractor NAME, e.g. default:sift)")

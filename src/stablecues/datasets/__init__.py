@@ -110,7 +110,9 @@ def open_dataset(path: str | Path, format: str = "auto", **options: Any) -> Sequ
         format: "auto" (see :func:`detect_format`), "folder", "tum", "kitti", "euroc",
             "fabmap", "vprbench" or "rosbag".
         **options: keyword options of that format's ``open_*`` function (e.g. ``grey=True``,
-            ``view="right"`` for fabmap, ``groundtruth=...`` for tum / euroc).
+            ``view="right"`` for fabmap, ``groundtruth=...`` for tum / euroc); every format takes
+            ``calibration`` (a file any reader of :func:`stablecues.geometry.load_calibration`
+            reads, in place of the dataset's own; a folder's also gives the DepthMapFactor).
 
     Returns:
         The dataset; iterate it for frames.
@@ -126,9 +128,16 @@ def open_dataset(path: str | Path, format: str = "auto", **options: Any) -> Sequ
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ConfigError(f"unknown dataset format {format!r}{hint}; known: auto, {', '.join(FORMATS)}")
     accepted = set(inspect.signature(opener).parameters) - {"path"}
+    calibration = None
+    if "calibration" not in accepted:  # every format takes one, after opening (use_calibration)
+        calibration = options.pop("calibration", None)
     unknown = sorted(set(options) - accepted)
     if unknown:
         raise ConfigError(
-            f"dataset format {fmt!r} takes no option {unknown[0]!r}; known: {', '.join(sorted(accepted))}"
+            f"dataset format {fmt!r} takes no option {unknown[0]!r}; known: "
+            f"{', '.join(sorted(accepted | {'calibration'}))}"
         )
-    return opener(path, **options)
+    dataset = opener(path, **options)
+    if calibration is not None:
+        dataset.use_calibration(calibration)
+    return dataset

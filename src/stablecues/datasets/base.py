@@ -209,6 +209,19 @@ class SequenceDataset:
                 self._calibration = load_calibration_lazily(self.calibration_path)
         return self._calibration
 
+    def use_calibration(self, path: str | Path) -> Calibration:
+        """Take the calibration from ``path`` (any file :func:`stablecues.geometry.load_calibration`
+        reads, or a TUM camera name) instead of the dataset's own; loaded now.
+
+        Raises:
+            CalibrationError: a missing or malformed file.
+        """
+        calib = load_calibration(path)
+        self.calibration_path = Path(path)
+        self.calibration_loader = None
+        self._calibration, self._calibration_tried = calib, True
+        return calib
+
     def describe(self) -> dict[str, Any]:
         """JSON-ready summary for a run's ``meta.json``: dataset, name, format, dataset_frames,
         stereo, depth, labels, poses, calibration and ground_truth (paths or None)."""

@@ -2,17 +2,20 @@
 
 Layout (everything but the images optional)::
 
-    DIR/images/*.png     left (or only) images, sorted by name (digit runs compare as numbers)
+    DIR/images/*.png     left (or only) images, sorted by name (digit runs compare as numbers);
+                         ``DIR/frames/`` is read the same way when there is no ``images/``
     DIR/right/           rectified right images, same names (any image suffix)
     DIR/depth/           16-bit depth PNG, metres = value / DepthMapFactor (calib.yaml; else 1000)
     DIR/labels/          uint8 PNG of CamVid class ids
     DIR/times.txt        one timestamp in seconds per line, one line per image
     DIR/poses.txt        TUM format ``t x y z qx qy qz qw``, camera-to-world, one line per image
     DIR/calib.yaml       ORB-SLAM settings style (``%YAML:1.0``, Camera.fx, ..., DepthMapFactor)
-    DIR/loops.npy        loop ground truth, (N, N) bool lower-triangular
+    DIR/loops.npy        loop ground truth, (N, N) bool lower-triangular (or, beside an
+                         ``images/`` or ``frames/`` folder, ``gt.png`` / ``gt.npy``: any matrix
+                         :func:`stablecues.groundtruth.load_ground_truth` reads)
 
-A plain folder of images (no ``images/`` sub-folder) is read the same way, with the images
-directly in ``DIR``.
+A plain folder of images (no ``images/`` or ``frames/`` sub-folder) is read the same way, with
+the images directly in ``DIR``.
 """
 
 from __future__ import annotations
@@ -34,6 +37,10 @@ from .base import FrameRecord, SequenceDataset, attach_poses, attach_times, find
 logger = logging.getLogger(__name__)
 
 DEFAULT_DEPTH_FACTOR = 1000.0
+#: sub-folders holding the (left) images, the first present one wins; else the images are in DIR
+IMAGE_FOLDERS = ("images", "frames")
+#: loop ground truth beside an image sub-folder when there is no loops.npy
+GT_NAMES = ("gt.npy", "gt.png")
 
 
 def read_settings_value(path: Path, key: str) -> float | None:
@@ -53,6 +60,21 @@ def read_settings_value(path: Path, key: str) -> float | None:
             except ValueError:
                 raise DatasetError(f"{path}: {key} should be a number, found {m.group(1)!r}") from None
     return None
+
+
+def _no_images(folder: Path) -> None:
+    """Raise the error of a folder without images, naming its sub-folders when it has some (a
+    folder of datasets, or of a layout the folder format does not know).
+
+    Raises:
+        DatasetError: always.
+    """
+    subs = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if subs:
+        shown = ", ".join(subs[:6]) + (f", ... ({len(subs)} folders)" if len(subs) > 6 else "")
+        raise DatasetError(f"{folder}: no images here, only folders ({shown}): give the dataset's own "
+                           "folder, or its format with --format")
+    list_images(folder)  # the usual message
 
 
 def _attach_side_folders(root: Path, images: list[Path], records: list[FrameRecord]) -> None:
@@ -123,8 +145,10 @@ def open_folder(
     root = Path(path)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder not found")
-    image_dir = root / "images" if (root / "images").is_dir() else root
-    images = list_images(image_dir)
+    image_dir = next((root / sub for sub in IMAGE_FOLDERS if (root / sub).is_dir()), root)
+    images = list_images(image_dir, allow_empty=True)
+    if not images:
+        _no_images(image_dir)
     records = [FrameRecord(image=p) for p in images]
     _attach_side_folders(root, images, records)
     times_file = root / "times.txt"
@@ -140,6 +164,8 @@ def open_folder(
     factor = _depth_factor(root, calib, depth_factor, records)
 
     loops = root / "loops.npy"
+    if not loops.is_file() and image_dir != root:  # beside the images' folder, a gt.* is no frame
+        loops = find_first(root, GT_NAMES) or loops
     return SequenceDataset(
         root=root,
         records=records,

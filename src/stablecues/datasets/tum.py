@@ -29,7 +29,9 @@ from ..trajectory import associate, nearest, read_tum
 from .base import FrameRecord, SequenceDataset, find_first, inside
 
 TUM_DEPTH_FACTOR = 5000.0
-_TIMESTAMP_NAME = re.compile(r"^\d+(\.\d+)?$")
+#: an image named by its time in seconds, as TUM's are (1311868169.163498): with a fraction, so
+#: that a folder of 1.png, 2.png, ... never gets times made up from its frame numbers
+_TIMESTAMP_NAME = re.compile(r"^\d+\.\d+$")
 _FREIBURG = re.compile(r"(?:freiburg|fr)([123])(?![0-9])", re.IGNORECASE)
 _TUM_CAMERA = re.compile(r"^fr[123]$")
 

@@ -15,15 +15,15 @@ segmentation pictures) builds its extractor with :func:`make_extractor`.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from collections.abc import Callable
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from ..config import merge
 from ..errors import ConfigError
-from .base import Extractor, ExtractorConfig
-from .orb import OrbConfig, OrbExtractor
-from .sift import SiftConfig, SiftExtractor
-from .xfeat import XFeatConfig, XFeatExtractor
+
+if TYPE_CHECKING:
+    from .base import Extractor, ExtractorConfig
 
 __all__ = [
     "DEFAULT_EXTRACTOR",
@@ -37,13 +37,26 @@ __all__ = [
 #: the extractor used when none is named
 DEFAULT_EXTRACTOR = "orb"
 
-ExtractorFactory = Callable[[Any], Extractor]
+ExtractorFactory = Callable[[Any], "Extractor"]
 
-_EXTRACTORS: dict[str, tuple[type[ExtractorConfig], ExtractorFactory]] = {
-    "orb": (OrbConfig, OrbExtractor),
-    "sift": (SiftConfig, SiftExtractor),
-    "xfeat": (XFeatConfig, XFeatExtractor),
+#: the built-in extractors: name -> (module of this package, settings class, extractor class),
+#: imported when first used (listing the names for a ``--help`` imports none of them)
+_BUILTIN: dict[str, tuple[str, str, str]] = {
+    "orb": ("orb", "OrbConfig", "OrbExtractor"),
+    "sift": ("sift", "SiftConfig", "SiftExtractor"),
+    "xfeat": ("xfeat", "XFeatConfig", "XFeatExtractor"),
 }
+_EXTRACTORS: dict[str, tuple[type[ExtractorConfig], ExtractorFactory]] = {}
+
+
+def _entry(name: str) -> tuple[type[ExtractorConfig], ExtractorFactory] | None:
+    """The registered classes of ``name`` (a built-in one imported now), or None."""
+    entry = _EXTRACTORS.get(name)
+    if entry is None and name in _BUILTIN:
+        module, config_cls, extractor_cls = _BUILTIN[name]
+        mod = importlib.import_module(f".{module}", __package__)
+        entry = _EXTRACTORS[name] = (getattr(mod, config_cls), getattr(mod, extractor_cls))
+    return entry
 
 
 def register_extractor(name: str, config_cls: type[ExtractorConfig], extractor_cls: ExtractorFactory) -> None:
@@ -58,6 +71,8 @@ def register_extractor(name: str, config_cls: type[ExtractorConfig], extractor_c
     Raises:
         ConfigError: a malformed settings class, or ``name`` already taken by other classes.
     """
+    from .base import ExtractorConfig
+
     if not (isinstance(config_cls, type) and issubclass(config_cls, ExtractorConfig)
             and dataclasses.is_dataclass(config_cls)):
         raise ConfigError(f"extractor {name!r}: settings must be a dataclass deriving from ExtractorConfig")
@@ -70,7 +85,7 @@ def register_extractor(name: str, config_cls: type[ExtractorConfig], extractor_c
         raise ConfigError(
             f"extractor {name!r}: {config_cls.__name__} needs defaults for {', '.join(required)}"
         )
-    known = _EXTRACTORS.get(name)
+    known = _entry(name)
     if known is not None and known != (config_cls, extractor_cls):
         raise ConfigError(f"extractor {name!r} is already registered ({known[0].__name__})")
     _EXTRACTORS[name] = (config_cls, extractor_cls)
@@ -78,7 +93,7 @@ def register_extractor(name: str, config_cls: type[ExtractorConfig], extractor_c
 
 def extractor_names() -> list[str]:
     """The registered names, default first."""
-    return sorted(_EXTRACTORS, key=lambda n: (n != DEFAULT_EXTRACTOR, n))
+    return sorted(set(_EXTRACTORS) | set(_BUILTIN), key=lambda n: (n != DEFAULT_EXTRACTOR, n))
 
 
 def extractor_config_class(name: str) -> type[ExtractorConfig]:
@@ -87,7 +102,7 @@ def extractor_config_class(name: str) -> type[ExtractorConfig]:
     Raises:
         ConfigError: an unknown name (the message lists the known ones).
     """
-    entry = _EXTRACTORS.get(name)
+    entry = _entry(name)
     if entry is None:
         raise ConfigError(f"unknown feature extractor {name!r}; known: {', '.join(extractor_names())}")
     return entry[0]
@@ -100,7 +115,7 @@ def extractor_config(name: str = DEFAULT_EXTRACTOR, **overrides: Any) -> Extract
         ConfigError: an unknown name, or an override the extractor does not have.
     """
     # every registered class has a default for each field (register_extractor checks it)
-    defaults = cast(Callable[[], ExtractorConfig], extractor_config_class(name))
+    defaults = cast("Callable[[], ExtractorConfig]", extractor_config_class(name))
     return merge(defaults(), overrides)
 
 
@@ -124,4 +139,4 @@ def make_extractor(config: ExtractorConfig | str | None = None) -> Extractor:
         raise ConfigError(
             f"extractor {name!r} takes {config_cls.__name__} settings, got {type(config).__name__}"
         )
-    return _EXTRACTORS[name][1](config)
+    return _EXTRACTORS[name][1](config)  # registered: extractor_config_class looked it up

@@ -5,9 +5,39 @@ Inference needs only onnxruntime (``SegmentationModel``); training and export ne
 imported only when used.
 """
 
-from .classes import CLASS_NAMES, DYNAMIC_CLASSES, NUM_CLASSES, STATIC_CLASSES, VOID_ID
-from .inference import SegmentationModel, SegmentationResult, default_weights_path
-from .masking import MASKING_PRESETS, MaskingConfig, MaskReport, pixel_mask, select_features
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_names
+
+if TYPE_CHECKING:
+    from .classes import CLASS_NAMES, DYNAMIC_CLASSES, NUM_CLASSES, STATIC_CLASSES, VOID_ID
+    from .inference import SegmentationModel, SegmentationResult, default_weights_path
+    from .masking import MASKING_PRESETS, MaskingConfig, MaskReport, pixel_mask, select_features
+
+__getattr__, __dir__ = lazy_names(
+    __name__,
+    {
+        "classes": (
+            "CLASS_NAMES",
+            "DYNAMIC_CLASSES",
+            "NUM_CLASSES",
+            "STATIC_CLASSES",
+            "VOID_ID",
+        ),
+        "inference": (
+            "SegmentationModel",
+            "SegmentationResult",
+            "default_weights_path",
+        ),
+        "masking": (
+            "MASKING_PRESETS",
+            "MaskingConfig",
+            "MaskReport",
+            "pixel_mask",
+            "select_features",
+        ),
+    },
+)
 
 __all__ = [
     "CLASS_NAMES",

@@ -34,6 +34,7 @@ from ..errors import ConfigError, InputError
 from ..types import Features
 from .classes import DYNAMIC_CLASSES, STATIC_CLASSES, class_lookup
 from .inference import SegmentationResult
+from .modes import MODES
 
 PixelRule = Callable[[SegmentationResult, "MaskingConfig"], np.ndarray]
 """``(segmentation, settings) -> (H, W) bool``: the pixels where a keypoint is kept."""
@@ -117,8 +118,8 @@ KEYPOINT_RULES: dict[str, KeypointRule] = {
     "patch": _static_patch,
 }
 
-#: the masking modes, in the order the module docstring describes them
-MODES = tuple(PIXEL_RULES)
+if tuple(PIXEL_RULES) != MODES:  # one name list for the command line (.modes) and the rules here
+    raise ImportError(f"masking modes {tuple(PIXEL_RULES)} differ from stablecues.semantics.modes {MODES}")
 
 
 @dataclass(frozen=True)

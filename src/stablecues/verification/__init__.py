@@ -4,11 +4,24 @@ Verification works on prepared features (:class:`View`); preparing frames from i
 detector's job (:mod:`stablecues.detection.prepare`, :mod:`stablecues.detection.pair`).
 """
 
+from typing import TYPE_CHECKING
+
 from .._compat import moved_name
-from .config import PRESETS, VerificationConfig, preset
-from .matching import Matches, hamming_matrix, hamming_pairs, match_features
-from .result import Method, Status, Verification
-from .verifier import Verifier, View
+from .._lazy import lazy_names
+
+if TYPE_CHECKING:
+    from .config import PRESETS, VerificationConfig, preset
+    from .matching import Matches, hamming_matrix, hamming_pairs, match_features
+    from .result import Method, Status, Verification
+    from .verifier import Verifier, View
+
+# names that moved up to :mod:`stablecues.detection.pair` are deprecated here (moved_name)
+__getattr__, __dir__ = lazy_names(__name__, {
+    "config": ("PRESETS", "VerificationConfig", "preset"),
+    "matching": ("Matches", "hamming_matrix", "hamming_pairs", "match_features"),
+    "result": ("Method", "Status", "Verification"),
+    "verifier": ("Verifier", "View"),
+}, fallback=lambda name: moved_name(__name__, name))
 
 __all__ = [
     "PRESETS",
@@ -25,7 +38,3 @@ __all__ = [
     "preset",
 ]
 
-
-def __getattr__(name: str) -> object:
-    """Names that moved up to :mod:`stablecues.detection.pair` (deprecated here)."""
-    return moved_name(__name__, name)

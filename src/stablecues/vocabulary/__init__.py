@@ -10,12 +10,23 @@ from __future__ import annotations
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from .._lazy import lazy_names
 from ..errors import ConfigError
-from .io import load_vocabulary, save_vocabulary
-from .scoring import Scoring, Weighting, higher_is_better, parse_scoring, parse_weighting, score
-from .train import train_vocabulary
-from .tree import Vocabulary, VocabularyInfo
+
+if TYPE_CHECKING:
+    from .io import load_vocabulary, save_vocabulary
+    from .scoring import Scoring, Weighting, higher_is_better, parse_scoring, parse_weighting, score
+    from .train import train_vocabulary
+    from .tree import Vocabulary, VocabularyInfo
+
+__getattr__, __dir__ = lazy_names(__name__, {
+    "io": ("load_vocabulary", "save_vocabulary"),
+    "scoring": ("Scoring", "Weighting", "higher_is_better", "parse_scoring", "parse_weighting", "score"),
+    "train": ("train_vocabulary",),
+    "tree": ("Vocabulary", "VocabularyInfo"),
+})
 
 DEFAULT_VOCABULARY = "vocab_orb_k10_L5.scv"
 #: extractor name -> the vocabulary shipped for its descriptors (see ``src/stablecues/data``)
@@ -62,4 +73,6 @@ def default_vocabulary(features: str = "orb") -> Vocabulary:
 
 @lru_cache(maxsize=4)
 def _load_default(features: str) -> Vocabulary:
+    from .io import load_vocabulary
+
     return load_vocabulary(default_vocabulary_path(features))
