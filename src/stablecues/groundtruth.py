@@ -582,7 +582,7 @@ def _check_loop_thresholds(
     if min_gap_s < 0 or min_gap_frames < 0:
         raise InputError(f"min gaps must be >= 0, got min_gap_s={min_gap_s}, min_gap_frames={min_gap_frames}")
     if (yaws is None) != (max_angle_deg is None):
-        raise InputError("yaws and max_angle_deg must be given together")
+        raise InputError("orientations (yaws or rotations) and max_angle_deg must be given together")
     if times is None and min_gap_s > 0:
         raise InputError(f"min_gap_s={min_gap_s} needs times")
 
@@ -618,6 +618,7 @@ def loops_from_poses(
     times: np.ndarray | None = None,
     min_gap_s: float = 0.0,
     min_gap_frames: int = 0,
+    rotations: np.ndarray | None = None,
 ) -> np.ndarray:
     """Loop ground truth from camera positions: frames close in space but apart in time.
 
@@ -626,6 +627,9 @@ def loops_from_poses(
     * ``||positions[i] - positions[j]|| <= max_distance`` (Euclidean, in the positions' unit);
     * if ``yaws`` and ``max_angle_deg`` are given: the absolute yaw difference, wrapped to
       [0, 180] degrees, is ``<= max_angle_deg``;
+    * if ``rotations`` and ``max_angle_deg`` are given instead: the angle of the relative
+      rotation ``R_j^T R_i`` (how far one camera turns to look as the other; the same for the
+      body frame and any camera rigidly on it) is ``<= max_angle_deg``;
     * if ``times`` is given: ``times[i] - times[j] >= min_gap_s``;
     * ``i - j >= min_gap_frames``.
 
@@ -639,6 +643,8 @@ def loops_from_poses(
         times: (N,) float timestamps in seconds, or None (then ``min_gap_s`` must be 0).
         min_gap_s: smallest time between the two frames of a loop, seconds.
         min_gap_frames: smallest index difference between the two frames of a loop.
+        rotations: (N, 3, 3) float orientations (any frame, the same for all), or None; with
+            ``max_angle_deg`` and in place of ``yaws``.
 
     Returns:
         (N, N) bool strictly lower-triangular loop matrix.
@@ -651,10 +657,22 @@ def loops_from_poses(
     if not np.issubdtype(positions.dtype, np.number):
         raise InputError(f"positions: expected a numeric array, got dtype {positions.dtype}")
     n = positions.shape[0]
-    _check_loop_thresholds(max_distance, min_gap_s, min_gap_frames, yaws, max_angle_deg, times)
+    if rotations is not None and yaws is not None:
+        raise InputError("give yaws or rotations, not both")
+    _check_loop_thresholds(max_distance, min_gap_s, min_gap_frames,
+                           yaws if rotations is None else rotations, max_angle_deg, times)
     pos = positions.astype(np.float64)
     valid = np.all(np.isfinite(pos), axis=1)
-    yaw_arr, cos_limit = _yaw_test(yaws, max_angle_deg, n)
+    rot: np.ndarray | None = None
+    if rotations is not None:
+        rot = np.asarray(rotations, dtype=np.float64)
+        check_array("rotations", rot, shape=(n, 3, 3))
+        valid &= np.isfinite(rot).all(axis=(1, 2))
+        rot = np.where(valid[:, None, None], rot, 0.0)
+        _, cos_limit = _yaw_test(np.zeros(n), max_angle_deg, n)
+        yaw_arr = None
+    else:
+        yaw_arr, cos_limit = _yaw_test(yaws, max_angle_deg, n)
     if yaw_arr is not None:
         valid &= np.isfinite(yaw_arr)
     time_arr: np.ndarray | None = None
@@ -681,6 +699,9 @@ def loops_from_poses(
         block &= valid[start:stop, None] & valid[None, :stop]
         if yaw_arr is not None:
             block &= np.cos(yaw_arr[start:stop, None] - yaw_arr[None, :stop]) >= cos_limit - 1e-12
+        if rot is not None:  # cos of the relative rotation's angle: (trace(R_j^T R_i) - 1) / 2
+            trace = np.einsum("ikl,jkl->ij", rot[start:stop], rot[:stop])
+            block &= (trace - 1.0) / 2.0 >= cos_limit - 1e-12
         if time_arr is not None:
             block &= time_arr[start:stop, None] - time_arr[None, :stop] >= min_gap_s
         gt[start:stop, :stop] = block

@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("info", "list a ROS bag's topics (and which a run would read), or summarise a dataset folder"),
     "sweep": ("sweep", "run a grid of datasets x presets as tasks on a Dask cluster, into one table"),
     "map": ("mapcmd", "check a map file (what it holds, what is damaged) or repair it"),
+    "gt": ("gt", "loop ground truth from camera poses (a dataset's own, TUM, EuRoC or KITTI files)"),
 }
 
 

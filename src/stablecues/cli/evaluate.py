@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 from .commands import summary
+from .options import add_pose_truth_options, loop_rule_from_args
+
+if TYPE_CHECKING:
+    from ..groundtruth import GroundTruth
+    from ..runs import Run
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -23,6 +28,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         type=Path,
         help="ground truth: .mat, .npy, .npz, image, or VPR-Bench ground_truth_new.npy "
         "(default: the one recorded in the run's meta.json)",
+    )
+    p.add_argument(
+        "--gt-poses",
+        type=Path,
+        metavar="SOURCE",
+        help="make the ground truth from poses instead (the loop rule below): the run's dataset or "
+        "another dataset whose frames carry poses, or a trajectory file (TUM, KITTI, EuRoC data.csv) "
+        "matched to the run's frames by their timestamps; as `stablecues gt poses` writes it",
     )
     p.add_argument("--protocol", choices=("exact", "tolerance", "ibow"), default="exact")
     p.add_argument(
@@ -71,6 +84,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--score", choices=("score", "raw_score"), default="score", help="column that ranks detections"
     )
+    add_pose_truth_options(p)
     return p
 
 
@@ -118,15 +132,21 @@ def run(args: argparse.Namespace) -> int:
             f"{run_.path}: the run is incomplete ({len(run_)} frames written; interrupted?): resume it with "
             "'stablecues run --resume', or pass --allow-incomplete to score the frames it has"
         )
-    gt_path = args.gt or run_.meta.get("ground_truth")
-    if not gt_path or not isinstance(gt_path, str | Path):
-        raise ConfigError(f"{args.run_dir}: no ground truth recorded for this run; pass --gt FILE")
-    gt = load_ground_truth(gt_path, variable=args.gt_variable, orientation=args.gt_orientation)
-    view = args.gt_view or run_.meta.get("gt_view") or "all"
-    if view not in ("all", "left", "right", "pair"):
-        raise ConfigError(f"{run_.path}: meta.json gt_view {view!r} is not all, left, right or pair")
     n_frames = run_.meta_int("dataset_frames", run_.meta_int("frames"))
-    gt = fit_view(gt, cast(View, view), n_frames)
+    if args.gt_poses is not None:
+        if args.gt is not None:
+            raise ConfigError("--gt reads a ground-truth file and --gt-poses makes one from poses: give one")
+        gt = _pose_truth(args, run_, n_frames)
+    else:
+        gt_path = args.gt or run_.meta.get("ground_truth")
+        if not gt_path or not isinstance(gt_path, str | Path):
+            raise ConfigError(f"{args.run_dir}: no ground truth recorded for this run; pass --gt FILE "
+                              "(or --gt-poses SOURCE --max-distance M to make one from poses)")
+        gt = load_ground_truth(gt_path, variable=args.gt_variable, orientation=args.gt_orientation)
+        view = args.gt_view or run_.meta.get("gt_view") or "all"
+        if view not in ("all", "left", "right", "pair"):
+            raise ConfigError(f"{run_.path}: meta.json gt_view {view!r} is not all, left, right or pair")
+        gt = fit_view(gt, cast(View, view), n_frames)
     exclude = args.exclude if args.exclude is not None else run_.meta_int("exclude", 0) or 0
     _, doc = evaluate_run(
         run_,
@@ -142,6 +162,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         write_output(args.json, json_text(doc), "evaluation")
     print(format_summary(doc))
+    rule = gt.notes.get("from_poses")
+    if rule:
+        lost = rule["frames_without_pose"]
+        print(f"loop rule    {rule['rule']} (poses: {rule['source']})"
+              + (f"; {lost} frames without a pose close no loop" if lost else ""))
     funnel = evaluation_funnel(doc)
     if funnel is not None:
         print()
@@ -150,3 +175,28 @@ def run(args: argparse.Namespace) -> int:
     print(format_timing_table(doc["timing_ms"]))
     print(f"\nwritten: {inside}" + (f", {args.json}" if args.json else ""))
     return 0
+
+
+def _pose_truth(args: argparse.Namespace, run_: Run, n_frames: int | None) -> GroundTruth:
+    """The run's ground truth made from poses (``--gt-poses``): a dataset's own, or a trajectory
+    matched to the run's frame times."""
+    import numpy as np
+
+    from ..errors import DatasetError
+    from ..posetruth import frame_poses, pose_ground_truth
+
+    rule = loop_rule_from_args(args, "--gt-poses")
+    src = Path(args.gt_poses)
+    frame_times = None
+    if src.is_file() and src.suffix.lower() not in (".bag", ".db3", ".mcap"):  # a trajectory file
+        n = n_frames if n_frames is not None else len(run_)
+        if not np.array_equal(run_.frames, np.arange(n)):
+            raise DatasetError(f"{run_.path}: --gt-poses with a trajectory file needs the times of every "
+                               f"frame 0..{n - 1}, but the run has {len(run_)} frames: give the dataset "
+                               "instead")
+        frame_times = run_.timestamps
+    source = frame_poses(src, frame_times=frame_times, n_frames=n_frames, max_dt=args.max_dt)
+    if n_frames is not None and source.poses.shape[0] != n_frames:
+        raise DatasetError(f"{src}: poses for {source.poses.shape[0]} frames, but the run's dataset has "
+                           f"{n_frames}")
+    return pose_ground_truth(source, rule)

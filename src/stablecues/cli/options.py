@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from ..features import ExtractorConfig
+    from ..posetruth import LoopRule
     from ..vocabulary import Vocabulary
 
 
@@ -155,3 +156,38 @@ def is_rosbag(args: argparse.Namespace) -> bool:
                           f"read as {args.format if args.format != 'auto' else 'a folder'}")
     return bag
 
+
+
+def add_pose_truth_options(parser: argparse.ArgumentParser) -> None:
+    """The loop rule of ground truth made from poses (:class:`stablecues.posetruth.LoopRule`)
+    and how poses meet frames; read back by :func:`loop_rule_from_args`."""
+    g = parser.add_argument_group("loop ground truth from poses")
+    g.add_argument("--max-distance", type=float, metavar="M",
+                   help="a loop: positions at most M apart (the trajectory's unit, metres); required")
+    g.add_argument("--max-angle", default="30", metavar="DEG",
+                   help="... and orientations at most DEG degrees apart (the relative rotation's angle; "
+                        "default 30; 'any' for position only)")
+    g.add_argument("--min-gap-s", type=float, metavar="S",
+                   help="... and at least S seconds apart (default 20 when the frames have times)")
+    g.add_argument("--min-gap-frames", type=int, default=0, metavar="N",
+                   help="... and at least N frames apart (default 0)")
+    g.add_argument("--max-dt", type=float, default=0.02, metavar="S",
+                   help="a frame takes the trajectory's pose nearest in time within S seconds (default 0.02)")
+
+
+def loop_rule_from_args(args: argparse.Namespace, option: str) -> LoopRule:
+    """The loop rule of :func:`add_pose_truth_options`' options (``option`` names the option that
+    asked for ground truth from poses, for the message when --max-distance is missing)."""
+    from ..errors import ConfigError
+    from ..posetruth import LoopRule
+
+    if args.max_distance is None:
+        raise ConfigError(f"{option} needs --max-distance M: how close two positions of a loop are "
+                          "(e.g. 0.5 for a room, 10 for a street)")
+    angle: float | None = None
+    if str(args.max_angle).strip().lower() not in ("any", "none"):
+        try:
+            angle = float(args.max_angle)
+        except ValueError:
+            raise ConfigError(f"--max-angle {args.max_angle!r}: expected degrees or 'any'") from None
+    return LoopRule(args.max_distance, angle, args.min_gap_s, args.min_gap_frames)

@@ -98,6 +98,7 @@ class SequenceDataset:
         calibration_loader: reads ``calibration_path`` when the generic
             ``stablecues.geometry.load_calibration`` would not pick the right cameras (KITTI's
             colour pair); None uses the generic one.
+        poses_path: the trajectory file the frames' poses were read from, or None.
     """
 
     root: Path
@@ -110,6 +111,7 @@ class SequenceDataset:
     grey: bool = False
     gt_options: dict[str, Any] = field(default_factory=dict)
     calibration_loader: Callable[[Path], Calibration] | None = field(default=None, repr=False)
+    poses_path: Path | None = None
     _calibration: Calibration | None = field(default=None, init=False, repr=False)
     _calibration_tried: bool = field(default=False, init=False, repr=False)
 

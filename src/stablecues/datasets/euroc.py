@@ -203,4 +203,5 @@ def open_euroc(
         calibration_path=sensor if sensor.is_file() else None,
         gt_path=loops if loops.is_file() else None,
         grey=grey,
+        poses_path=gt_file,
     )

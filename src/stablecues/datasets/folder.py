@@ -174,4 +174,5 @@ def open_folder(
         calibration_path=calib,
         gt_path=loops if loops.is_file() else None,
         grey=grey,
+        poses_path=poses_file if poses_file.is_file() else None,
     )

@@ -166,4 +166,5 @@ def open_kitti(
         gt_path=loops if loops.is_file() else None,
         grey=grey,
         calibration_loader=loader,
+        poses_path=pose_file,
     )

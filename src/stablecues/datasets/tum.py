@@ -178,4 +178,5 @@ def open_tum(
         calibration_path=calib,
         gt_path=loops if loops.is_file() else None,
         grey=grey,
+        poses_path=gt_file,
     )
