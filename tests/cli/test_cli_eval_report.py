@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 import subprocess
@@ -126,6 +127,34 @@ def test_report_html(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
     assert text.count("data:image/png;base64,") >= 6  # PR, 2x matrices, 2x status, match pictures
     assert "Precision-recall" in text and "bow_query" in text and "geometry_rejected" in text
     assert 'src="http' not in text and "<script" not in text  # self-contained, static
+
+
+def test_report_says_which_runs_it_cannot_score(
+    runs: tuple[Path, Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run never evaluated, or evaluated under another protocol than the one shown, was listed
+    with "-" under its loops and no word (issue 35): its row says why and a warning names it."""
+    run_a, run_b, gt_file = runs
+    fresh, other = tmp_path / "fresh", tmp_path / "other"
+    shutil.copytree(run_b, fresh)
+    shutil.copytree(run_b, other)
+    for d in (fresh, other):
+        for f in d.glob("eval_*.json"):
+            f.unlink()
+    assert main(["eval", str(run_a)]) == 0
+    tolerant = ["--protocol", "tolerance", "--tolerance", "2"]
+    assert main(["eval", str(other), "--gt", str(gt_file), *tolerant]) == 0
+    caplog.set_level(logging.WARNING)
+    html_file = tmp_path / "report.html"
+    three = [str(run_a), str(fresh), str(other)]
+    assert main(["report", *three, "--protocol", "exact", "--out", str(html_file)]) == 0
+    text = html_file.read_text()
+    assert ">not evaluated<" in text and "not evaluated under exact (only tolerance +-2)" in text
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(str(fresh) in m and "not evaluated;" in m for m in warned)
+    assert any(str(other) in m and "not evaluated under exact" in m for m in warned)
+    assert not any(str(run_a) in m for m in warned)
+    assert "1st apart" in text and "first frame" in text  # the warm-up kept out of ms/frame
 
 
 def _chromium() -> str | None:

@@ -37,7 +37,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "another dataset whose frames carry poses, or a trajectory file (TUM, KITTI, EuRoC data.csv) "
         "matched to the run's frames by their timestamps; as `stablecues gt poses` writes it",
     )
-    p.add_argument("--protocol", choices=("exact", "tolerance", "ibow"), default="exact")
+    p.add_argument(
+        "--protocol",
+        choices=("exact", "tolerance", "ibow"),
+        default="exact",
+        help="when a detection (query i, frame c) is right: exact (default): the ground truth has the "
+        "loop (i, c); ibow (iBoW-LCD): row i has a loop within +-N frames of c; tolerance: a loop within "
+        "+-N frames of (i, c) on both axes (the demo's report uses tolerance 2)",
+    )
     p.add_argument(
         "--tolerance",
         type=int,
@@ -82,7 +89,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="score only accepted loops (default) or every frame's candidate",
     )
     p.add_argument(
-        "--score", choices=("score", "raw_score"), default="score", help="column that ranks detections"
+        "--score",
+        choices=("score", "raw_score"),
+        default="score",
+        help="the decisions.csv column that ranks detections for the precision-recall sweep: score "
+        "(default: the detector's confidence) or raw_score (the BoW similarity before normalisation)",
     )
     add_pose_truth_options(p)
     return p

@@ -20,9 +20,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("run_dirs", type=Path, nargs="+", metavar="RUN_DIR")
     p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
     p.add_argument(
-        "--protocol", choices=("exact", "tolerance", "ibow"), help="evaluation to show (default exact)"
+        "--protocol",
+        choices=("exact", "tolerance", "ibow"),
+        help="the evaluation to show (each run's eval_*.json); default: one every evaluated run has, "
+        "exact first (the demo's report shows tolerance +-2). A run without it is listed as not "
+        "evaluated, with a warning",
     )
-    p.add_argument("--tolerance", type=int, help="tolerance of the evaluation to show")
+    p.add_argument("--tolerance", type=int, help="tolerance of the evaluation to show (frames)")
     p.add_argument("--title", default="stablecues loop-closure evaluation")
     p.add_argument(
         "--max-loops",

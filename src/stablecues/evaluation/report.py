@@ -284,6 +284,12 @@ def build_report(
         protocol, tolerance = _common_protocol(runs)
     docs = [choose_evaluation(r, protocol, tolerance) for r in runs]
     _check_one_protocol(runs, docs)
+    unevaluated = {id(r): _not_evaluated(r, protocol, tolerance) for r, d in zip(runs, docs, strict=True)
+                   if d is None}
+    for r in runs:
+        if id(r) in unevaluated:
+            logger.warning("%s: %s; the report shows its decisions but no TP / FP / R@100P (run "
+                           "`stablecues eval %s` first)", r.path, unevaluated[id(r)], r.path)
     shown = [_analyse(r, d, gt_cache) for r, d in zip(runs, docs, strict=True)]
     check_output(out_path, "report", make_folder=True)  # before any figure is drawn
     pictures = _Pictures(out_path)
@@ -298,7 +304,7 @@ def build_report(
         _contents(runs, shown),
     ]
     with report_style():
-        parts += _summary_section(runs, docs)
+        parts += _summary_section(runs, docs, unevaluated)
         parts += _pr_section(runs, docs)
         for k, (run, s) in enumerate(zip(runs, shown, strict=True), 1):
             parts += _run_section(k, run, s, pictures, max_loops)
@@ -351,14 +357,26 @@ def _check_one_protocol(runs: Sequence[Run], docs: Sequence[dict[str, Any] | Non
         )
 
 
-def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
-    """The summary table: one row per run, its evaluation's counts, R@100P, AUC and speed."""
+def _not_evaluated(run: Run, protocol: str | None, tolerance: int | None) -> str:
+    """Why a run has no evaluation to show: none at all, or none under the one asked for."""
+    others = sorted({f"{e.get('protocol')} +-{int(e.get('tolerance') or 0)}"
+                     for e in run_evaluations(run).values()})
+    if not others:
+        return "not evaluated"
+    asked = " ".join(x for x in (protocol, None if tolerance is None else f"+-{tolerance}") if x)
+    return f"not evaluated under {asked or 'the protocol shown'} (only {', '.join(others)})"
+
+
+def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None],
+                     unevaluated: dict[int, str]) -> list[str]:
+    """The summary table: one row per run, its evaluation's counts, R@100P, AUC and speed (the
+    first frame's warm-up apart)."""
     rows = []
     for run, doc in zip(runs, docs, strict=True):
         total = (run.timings().get("total") or {}).get("mean")
         accepted = int(np.count_nonzero(run.accepted))
         if doc is None:
-            rows.append([run.name, run.meta.get("preset"), "not evaluated", *["-"] * 6, accepted,
+            rows.append([run.name, run.meta.get("preset"), unevaluated[id(run)], *["-"] * 6, accepted,
                          *["-"] * 4, total])
             continue
         gt_name = Path(doc["gt_file"]).name if doc.get("gt_file") else "-"
@@ -382,7 +400,7 @@ def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None])
             ]
         )
     header = ["run", "preset", "protocol", "tol", "excl", "ground truth (sha256)", "queries", "positives"]
-    header += ["loops accepted", "TP", "FP", "FN", "R@100P", "AUC", "ms/frame"]
+    header += ["loops accepted", "TP", "FP", "FN", "R@100P", "AUC", "ms/frame (1st apart)"]
     return ["<section id='summary'><h2>Summary</h2>", _table(header, rows, left=3), "</section>"]
 
 
@@ -429,18 +447,20 @@ def _run_section(k: int, run: Run, shown: _Shown, pictures: _Pictures, max_loops
         if run.meta.get(key):
             meta.append([key.replace("_", " "), run.meta[key]])
     trows = [
-        [name, v.get("mean"), v.get("std"), v.get("min"), v.get("max"), v.get("count")]
+        [name, v.get("mean"), v.get("std"), v.get("min"), v.get("max"), v.get("count"), v.get("first")]
         for name, v in run.timings().items()
     ]
     return [
         f"<h2 id='r{k}'>Run {html.escape(run.name)}</h2>",
-        _table(["", ""], meta, left=2),
+        _table(["run", "value"], meta, left=2),
         *_funnel_section(k, shown),
         _matrices_section(run, shown),
         *_loops_section(k, run, shown, pictures, max_loops),
         *_status_section(run),
         "<h3>Time per stage (ms)</h3>",
-        _table(["stage", "mean", "std", "min", "max", "frames"], trows),
+        "<p class='note'>The first frame loads the models and compiled code: its time is given apart "
+        "and left out of the other figures.</p>",
+        _table(["stage", "mean", "std", "min", "max", "frames", "first frame"], trows),
     ]
 
 

@@ -844,14 +844,17 @@ class Run:
         return out
 
     def timings(self) -> dict[str, dict[str, Any]]:
-        """The per-stage timing table (from ``timings.json``, else computed from the rows)."""
+        """The per-stage timing table, the first frame apart (from ``timings.json``, else computed
+        from the rows)."""
         p = own_file(self.path / TIMINGS, "timings")
         if p.is_file() and self.complete:
             table = read_json(p, "timings")
             for stage, row in table.items():
                 if not _is_timing_row(row):
                     raise DatasetError(f"{p}: stage {stage!r} should map to numbers (mean, std, ...)")
-            return table
+            if all("first" in row for row in table.values()):
+                return table
+            # written before the first frame was kept apart: computed again from the rows
         return timing_table(self.stage_ms)
 
     def status_counts(self) -> dict[str, int]:

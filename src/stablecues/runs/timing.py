@@ -8,7 +8,7 @@ import numpy as np
 
 
 def timing_table(
-    stage_ms: Mapping[str, np.ndarray], *, add_total: bool = True
+    stage_ms: Mapping[str, np.ndarray], *, add_total: bool = True, first_apart: bool = True
 ) -> dict[str, dict[str, float | int | None]]:
     """Summarise per-frame stage times.
 
@@ -18,10 +18,14 @@ def timing_table(
         add_total: when there is no "total" stage, add one: the per-frame sum over stages
             (frames where every stage is NaN left out). Stages that nest inside each other
             would be counted twice; write a ``total`` stage yourself in that case.
+        first_apart: leave the first frame out of the figures (it loads the networks, the
+            vocabulary's compiled code, ...: 0.5-10 s that would swamp the mean of a short
+            run) and give its time as ``first`` (when there are at least two frames).
 
     Returns:
-        stage -> {"mean", "std", "min", "max", "count"}; the figures are None when the stage
-        never ran (``count`` 0). Stages keep their order; "total" comes last.
+        stage -> {"mean", "std", "min", "max", "count", "first"}; the figures are None when the
+        stage never ran (``count`` 0), ``first`` None when the first frame is not apart or did
+        not run the stage. Stages keep their order; "total" comes last.
     """
     table: dict[str, dict[str, float | int | None]] = {}
     arrays = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in stage_ms.items()}
@@ -31,9 +35,13 @@ def timing_table(
         total[np.all(np.isnan(stacked), axis=0)] = np.nan
         arrays["total"] = total
     for name, values in arrays.items():
+        first: float | None = None
+        if first_apart and values.size > 1:
+            first = float(values[0]) if np.isfinite(values[0]) else None
+            values = values[1:]
         v = values[np.isfinite(values)]
         if v.size == 0:
-            table[name] = {"mean": None, "std": None, "min": None, "max": None, "count": 0}
+            table[name] = {"mean": None, "std": None, "min": None, "max": None, "count": 0, "first": first}
         else:
             table[name] = {
                 "mean": float(v.mean()),
@@ -41,16 +49,26 @@ def timing_table(
                 "min": float(v.min()),
                 "max": float(v.max()),
                 "count": int(v.size),
+                "first": first,
             }
     return table
 
 
 def format_timing_table(table: Mapping[str, Mapping[str, float | int | None]]) -> str:
-    """Plain-text rendering of :func:`timing_table`'s result, one line per stage."""
-    lines = [f"{'stage':<20} {'mean':>9} {'std':>9} {'min':>9} {'max':>9} {'count':>7}  (ms)"]
+    """Plain-text rendering of :func:`timing_table`'s result, one line per stage; the first
+    frame's warm-up (``first``) in a column of its own when the table keeps it apart."""
+    apart = any("first" in row for row in table.values())
+    lines = [f"{'stage':<20} {'mean':>9} {'std':>9} {'min':>9} {'max':>9} {'count':>7}"
+             + (f" {'1st frame':>10}" if apart else "") + "  (ms)"]
     for name, row in table.items():
         cells = [
             f"{row[k]:9.2f}" if row.get(k) is not None else f"{'-':>9}" for k in ("mean", "std", "min", "max")
         ]
-        lines.append(f"{name:<20} {' '.join(cells)} {int(row.get('count') or 0):>7}")
+        line = f"{name:<20} {' '.join(cells)} {int(row.get('count') or 0):>7}"
+        if apart:
+            first = row.get("first")
+            line += f" {first:10.2f}" if first is not None else f" {'-':>10}"
+        lines.append(line)
+    if apart:
+        lines.append("(the first frame, which loads models and compiled code, is left out of the figures)")
     return "\n".join(lines)
