@@ -25,6 +25,28 @@ def test_readme_shows_the_demo() -> None:
     assert "stablecues demo" in (REPO / "README.md").read_text()
 
 
+README_LIMIT = 12_000  # characters: a user's guide read in minutes; the rest lives in docs/
+
+
+def test_readme_stays_short() -> None:
+    assert len((REPO / "README.md").read_text(encoding="utf-8")) <= README_LIMIT
+
+
+def test_readme_results_table_is_the_bench_figures() -> None:
+    """The README's results table is what ``scripts/readme_results.py`` prints from
+    ``bench/results/`` (its figures, row by row; the date line from git may differ)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("readme_results", REPO / "scripts" / "readme_results.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rows = [line for line in module.table().splitlines() if line.startswith("|")]
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    assert "\n".join(rows) in readme
+    assert re.search(r"measured up to \d{4}-\d\d-\d\d on a shared 2-core", readme)
+
+
 # --- the SLAM-loop snippets, executed exactly as the README writes them --------------------------
 
 def slam_snippets() -> list[str]:

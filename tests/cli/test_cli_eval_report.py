@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import shutil
 import subprocess
 import tempfile
@@ -126,6 +127,8 @@ def test_report_html(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
     text = html_file.read_text()
     assert text.count("data:image/png;base64,") >= 6  # PR, 2x matrices, 2x status, match pictures
     assert "Precision-recall" in text and "bow_query" in text and "geometry_rejected" in text
+    # the summary says in words where each run lost its loops, from its funnel (issue 35)
+    assert "Where the loops were lost" in text and re.search(r"run_a</b> found \d+ of 50 loops", text)
     assert 'src="http' not in text and "<script" not in text  # self-contained, static
 
 

@@ -401,7 +401,46 @@ def _summary_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None],
         )
     header = ["run", "preset", "protocol", "tol", "excl", "ground truth (sha256)", "queries", "positives"]
     header += ["loops accepted", "TP", "FP", "FN", "R@100P", "AUC", "ms/frame (1st apart)"]
-    return ["<section id='summary'><h2>Summary</h2>", _table(header, rows, left=3), "</section>"]
+    losses = _losses_paragraph(runs, docs)
+    return ["<section id='summary'><h2>Summary</h2>", _table(header, rows, left=3), *losses, "</section>"]
+
+
+#: what losing a true loop at each stage of the funnel means, for the summary's paragraph
+_LOSS_WORDS = {
+    "excluded": "had nothing outside the exclusion window to compare with",
+    "not_retrieved": "never had their place among the database's results (appearance too different for "
+                     "the vocabulary)",
+    "below_alpha": "were retrieved but scored under alpha",
+    "wrong_island": "had their place retrieved but not among the islands verified (other places "
+                    "scored higher, or the island's best entry was a few frames off)",
+    "temporal": "were stopped by the temporal window",
+    "geometry": "had their place verified and rejected by the geometry (or refused as under "
+                "min_confidence)",
+    "wrong_accepted": "had a wrong place accepted instead",
+    "below_threshold": "were found, but less confident than the most confident false loop (so not "
+                       "counted at 100 % precision)",
+}
+
+
+def _losses_paragraph(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
+    """One paragraph: for each evaluated run, how many loops it found at 100 % precision and
+    where its loss funnel says it lost the others, largest loss first."""
+    sentences = []
+    for run, doc in zip(runs, docs, strict=True):
+        funnel = evaluation_funnel(doc) if doc is not None else None
+        if funnel is None or funnel.positives == 0:
+            continue
+        lost = sorted(((n, stage) for stage, n in funnel.counts.items()
+                       if n and stage in _LOSS_WORDS), reverse=True)
+        parts = [f"{n} {_LOSS_WORDS[stage]}" for n, stage in lost[:3]]
+        found = funnel.counts.get("found", 0)
+        text = (f"<b>{html.escape(run.name)}</b> found {found} of {funnel.positives} loops at 100 % "
+                "precision" + ("; of the others, " + "; ".join(parts) if parts else "") + ".")
+        sentences.append(text)
+    if not sentences:
+        return []
+    return ["<p class='note'>Where the loops were lost (each run's loss funnel, below): "
+            + " ".join(sentences) + "</p>"]
 
 
 def _pr_section(runs: Sequence[Run], docs: Sequence[dict[str, Any] | None]) -> list[str]:
