@@ -3,7 +3,7 @@
 Layout (everything but the images optional)::
 
     DIR/images/*.png     left (or only) images, sorted by name (digit runs compare as numbers);
-                         ``DIR/frames/`` is read the same way when there is no ``images/``
+                         without ``images/``, ``DIR/frames/`` or ``DIR/color/`` is read the same way
     DIR/right/           rectified right images, same names (any image suffix)
     DIR/depth/           16-bit depth PNG, metres = value / DepthMapFactor (calib.yaml; else 1000)
     DIR/labels/          uint8 PNG of CamVid class ids
@@ -38,7 +38,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_DEPTH_FACTOR = 1000.0
 #: sub-folders holding the (left) images, the first present one wins; else the images are in DIR
-IMAGE_FOLDERS = ("images", "frames")
+IMAGE_FOLDERS = ("images", "frames", "color")
 #: loop ground truth beside an image sub-folder when there is no loops.npy
 GT_NAMES = ("gt.npy", "gt.png")
 
