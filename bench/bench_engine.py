@@ -344,7 +344,64 @@ def database_section(args: argparse.Namespace, tmp: Path) -> dict[str, object]:
     return results
 
 
-SECTIONS = ("vocabulary", "database", "end_to_end")
+#: a fresh process's time to its first decision: start, imports, detector, the first frame
+FIRST_DECISION = r"""
+import time
+t0 = time.perf_counter()
+import json, sys
+import cv2
+from stablecues import Frame, LoopDetector, preset
+image = cv2.imread(sys.argv[1], cv2.IMREAD_GRAYSCALE)
+t_import = time.perf_counter()
+detector = LoopDetector(preset(sys.argv[2]))
+decision = detector.process(Frame(index=0, name="0", timestamp=0.0, image=image))
+t_first = time.perf_counter()
+second = detector.process(Frame(index=1, name="1", timestamp=0.1, image=image))
+t_second = time.perf_counter()
+from stablecues.vocabulary.engine import loaded_kernels
+print(json.dumps({"imports_s": t_import - t0, "first_frame_s": t_first - t_import,
+                  "to_first_decision_s": t_first - t0, "second_frame_ms": (t_second - t_first) * 1e3,
+                  "kernels_loaded_after_two_frames": loaded_kernels() is not None}))
+"""
+
+
+def first_decision(runs: int = 5) -> dict[str, object]:
+    """Time from process start to the first LoopDecision on a real EuRoC frame, in fresh
+    processes (median of ``runs``): with an empty numba cache (the first run after an install:
+    the kernels compile in a background thread while the first frames run on NumPy), with a
+    warm one, and with ``STABLECUES_COMPILE=wait`` (the kernels loaded before the first frame,
+    as before); ``fast`` and the default (its network loads in the first frame). The process
+    writes Python's bytecode as an installed package has it (one run first to write it)."""
+    frames = sorted((SHARED / "euroc" / "V1_01_micro" / "mav0" / "cam0" / "data").glob("*.png"))
+    if not frames:
+        return {"skipped": "no EuRoC frame under ../shared/data"}
+    image = str(frames[0])
+    base = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    subprocess.run([sys.executable, "-c", FIRST_DECISION, image, "fast"], env=base, check=True,
+                   capture_output=True)  # bytecode written, as pip install compiles it
+    out: dict[str, object] = {"frame": str(frames[0].relative_to(SHARED)), "runs": runs,
+                              "load_average": load_average()}
+    for name in ("fast", "default"):
+        for label, extra in (("cold_cache", {}), ("warm_cache", {}),
+                             ("warm_cache_kernels_first", {"STABLECUES_COMPILE": "wait"})):
+            figures = []
+            for _ in range(runs):
+                cache = tempfile.mkdtemp(prefix="numba_cache_") if label == "cold_cache" else None
+                env = {**base, **extra, **({"NUMBA_CACHE_DIR": cache} if cache else {})}
+                run = subprocess.run([sys.executable, "-c", FIRST_DECISION, image, name], env=env,
+                                     check=True, capture_output=True, text=True)
+                figures.append(json.loads(run.stdout.strip().splitlines()[-1]))
+            row = {key: round(float(np.median([f[key] for f in figures])), 3)
+                   for key in ("imports_s", "first_frame_s", "to_first_decision_s", "second_frame_ms")}
+            row["to_first_decision_max_s"] = round(max(f["to_first_decision_s"] for f in figures), 3)
+            out[f"{name}_{label}"] = row
+            print(f"  first decision, {name:7s} {label:26s} {row['to_first_decision_s']:.3f} s "
+                  f"(imports {row['imports_s']:.3f}, first frame {row['first_frame_s']:.3f}; "
+                  f"second frame {row['second_frame_ms']:.0f} ms)", flush=True)
+    return out
+
+
+SECTIONS = ("vocabulary", "database", "end_to_end", "first_decision")
 
 
 def median_of_runs(runs: list[dict[str, object]]) -> dict[str, object]:
@@ -393,6 +450,10 @@ def main() -> None:
         if "database" in args.sections:
             results.update(database_section(args, tmp))
             results["database_measured"] = time.strftime("%Y-%m-%d %H:%M")
+    if "first_decision" in args.sections:
+        print("time to the first decision, fresh processes ...", flush=True)
+        results["first_decision"] = first_decision()
+        results["first_decision_measured"] = time.strftime("%Y-%m-%d %H:%M")
     frames = real_frames()
     if "end_to_end" in args.sections and frames:
         print("end to end on real frames ...", flush=True)

@@ -6,6 +6,15 @@ segmentation; ORB's keypoint spread, :mod:`stablecues.features.orb`). Each takes
 name; ``"auto"`` means the compiled path when numba works here, unless the environment variable
 ``STABLECUES_ENGINE`` names another engine for the whole process. This module holds only that
 choice, so that any package can make it without importing another stage.
+
+**Kernels load in the background.** Importing numba and loading its cached machine code takes
+about a second in a fresh process, and compiling the kernels the first time on a machine (the
+first run after an install) 10-15 s. Under ``"auto"`` the first use of a stage starts that work
+in a thread of its own (:class:`Kernels`) and runs the stage on NumPy meanwhile; the stage
+switches to the compiled path once the kernels are there. The two paths give the same results,
+so a decision never depends on when the switch happens; only the first frames are a little
+slower. ``"compiled"`` (asked for by name) waits for them, and ``STABLECUES_COMPILE=wait`` makes
+``"auto"`` wait too (the behaviour before, for measurements of the compiled path alone).
 """
 
 from __future__ import annotations
@@ -13,12 +22,14 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import threading
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 from .errors import ConfigError
 
-__all__ = ["ENGINES", "ENV_VARIABLE", "FREEZE_VARIABLE", "check_engine", "load_compiled", "requested"]
+__all__ = ["COMPILE_VARIABLE", "ENGINES", "ENV_VARIABLE", "FREEZE_VARIABLE", "Kernels", "check_engine",
+           "load_compiled", "requested"]
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -27,6 +38,8 @@ ENGINES = ("auto", "compiled", "numpy")
 ENV_VARIABLE = "STABLECUES_ENGINE"
 #: set to 0 to leave Python's garbage collector as it is when the compiled kernels load
 FREEZE_VARIABLE = "STABLECUES_GC_FREEZE"
+#: set to ``wait`` to load the compiled kernels where they are first needed, not in the background
+COMPILE_VARIABLE = "STABLECUES_COMPILE"
 
 
 def check_engine(name: str) -> None:
@@ -65,6 +78,54 @@ def load_compiled(load: Callable[[], T], what: str) -> T | None:
         return None
     _settle_imports()
     return loaded
+
+
+class Kernels(Generic[T]):
+    """Compiled kernels, loaded once per process by ``load`` (see :func:`load_compiled`).
+
+    :meth:`get` with ``wait=False`` starts the load in a daemon thread the first time and
+    answers None until it is done (the caller runs NumPy meanwhile); ``wait=True`` loads them
+    here, or waits for the thread. The answer is None for good when numba is missing or fails.
+    """
+
+    def __init__(self, load: Callable[[], T], what: str) -> None:
+        self._load, self.what = load, what
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._value: T | None = None
+
+    def get(self, wait: bool = True) -> T | None:
+        """The kernels, or None (not loaded yet with ``wait=False``, or unavailable here)."""
+        if self._done.is_set():
+            return self._value
+        if not wait and os.environ.get(COMPILE_VARIABLE, "").strip().lower() == "wait":
+            wait = True
+        with self._lock:
+            if self._thread is None and not self._done.is_set():
+                if wait:  # nobody started it: load here
+                    self._run()
+                    return self._value
+                self._thread = threading.Thread(target=self._run, name=f"stablecues: load {self.what}",
+                                                daemon=True)
+                self._thread.start()
+        if wait:
+            self._done.wait()
+        return self._value if self._done.is_set() else None
+
+    def loaded(self) -> T | None:
+        """The kernels if they are loaded already, else None (never starts a load)."""
+        return self._value if self._done.is_set() else None
+
+    def failed(self) -> bool:
+        """Whether loading finished without kernels (numba missing or failing here)."""
+        return self._done.is_set() and self._value is None
+
+    def _run(self) -> None:
+        try:
+            self._value = load_compiled(self._load, self.what)
+        finally:
+            self._done.set()
 
 
 _settled: list[bool] = []

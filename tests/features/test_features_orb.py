@@ -149,9 +149,15 @@ def test_extraction_is_the_same_on_both_engines(monkeypatch: pytest.MonkeyPatch)
 
 def test_keypoint_spread_without_the_compiler(monkeypatch: pytest.MonkeyPatch) -> None:
     """Where numba is missing or fails, "auto" runs NumPy and "compiled" says how to get it."""
+    from stablecues.engine import Kernels
     from stablecues.features import orb
 
-    monkeypatch.setitem(orb._KERNEL, "pick", None)
+    def no_numba() -> None:
+        raise ImportError("No module named 'numba'")
+
+    missing: Kernels[None] = Kernels(no_numba, "ORB's keypoint spread")
+    assert missing.get(wait=True) is None and missing.failed()
+    monkeypatch.setattr(orb, "_PICK", missing)
     pts = np.array([[1, 1], [50, 50], [90, 10]], np.float32)
     resp = np.array([1.0, 3.0, 2.0], np.float32)
     args = (pts, resp, np.zeros(3, np.int64), np.array([2]), (100, 100))

@@ -13,6 +13,7 @@ from vocab_files import small_vocabulary
 
 from conftest import shared_path
 from stablecues import vocabulary as vocabulary_package
+from stablecues.engine import Kernels
 from stablecues.errors import ConfigError
 from stablecues.features import OrbExtractor
 from stablecues.imageio import read_image
@@ -140,7 +141,7 @@ def test_without_numba_the_numpy_engine_is_chosen(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setitem(sys.modules, "numba", None)  # import numba -> ImportError
     monkeypatch.delitem(sys.modules, "stablecues.vocabulary._compiled", raising=False)
     monkeypatch.delattr(vocabulary_package, "_compiled", raising=False)
-    monkeypatch.setattr(engine, "_state", {})
+    monkeypatch.setattr(engine, "_KERNELS", Kernels(engine._load, "the vocabulary transform"))
     assert engine.compiled_kernels() is None
     voc = with_engine(default_vocabulary(), "auto")
     assert voc.engine == "numpy"

@@ -26,7 +26,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..engine import load_compiled, requested
+from ..engine import Kernels, requested
 from ..errors import ConfigError
 from ..imageio import to_grey
 from ..types import ORB_DESCRIPTOR, DescriptorKind, Features
@@ -159,15 +159,11 @@ def distribute_quadtree(
     return winners[:quota]
 
 
-_KERNEL: dict[str, Any] = {}
-
-
-def quadtree_kernel() -> Any:
+def quadtree_kernel(wait: bool = True) -> Any:
     """The compiled per-level quadtree pick (:mod:`stablecues.features._compiled`), or None
-    when numba is missing or fails here (then NumPy runs); compiled or loaded once."""
-    if "pick" not in _KERNEL:
-        _KERNEL["pick"] = load_compiled(_load_pick, "ORB's keypoint spread")
-    return _KERNEL["pick"]
+    when numba is missing or fails here (then NumPy runs); compiled or loaded once, in the
+    background with ``wait=False`` (None until then; see :mod:`stablecues.engine`)."""
+    return _PICK.get(wait)
 
 
 def _load_pick() -> Any:
@@ -177,6 +173,9 @@ def _load_pick() -> Any:
     pick(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
          np.ones(1, np.int64), 1.0)
     return pick
+
+
+_PICK: Kernels[Any] = Kernels(_load_pick, "ORB's keypoint spread")
 
 
 def select_keypoints(
@@ -204,7 +203,7 @@ def select_keypoints(
     # the compiled loop sorts (cell * n + position) keys in int64: cells stay below 4 side^2
     fits = 4.0 * side * side * max(points.shape[0], 1) < 2.0**62
     choice = requested(engine)
-    kernel = quadtree_kernel() if fits and choice != "numpy" else None
+    kernel = quadtree_kernel(wait=choice == "compiled") if fits and choice != "numpy" else None
     if kernel is not None:
         return kernel(points, responses, np.ascontiguousarray(octaves, np.int64),
                       np.ascontiguousarray(quotas, np.int64), side)

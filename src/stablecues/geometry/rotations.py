@@ -10,18 +10,21 @@ SciPy's :class:`~scipy.spatial.transform.Rotation` does the conversions (matrice
 rotation vectors, interpolation). The Hamilton product and the quaternion-to-matrix formula are
 written out, and one quaternion or rotation vector takes a Python-float path, because the EKF
 calls them once per IMU sample, where SciPy's and NumPy's per-call overhead (~10-20 us) would
-dominate; tests check every path against SciPy.
+dominate; tests check every path against SciPy. SciPy is imported when one of its
+conversions is first used (its import takes 0.3 s, most of a process's start).
 """
 
 from __future__ import annotations
 
 import math
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputError
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 __all__ = [
     "euler_zyx_to_quat",
@@ -43,6 +46,13 @@ _MIN_NORM = 1e-12
 _ZERO_QUAT = "quaternions: found one of zero or non-finite norm, which is no rotation"
 
 _T = TypeVar("_T", float, np.ndarray)  # one quaternion's components, or arrays of them
+
+
+def _rotation() -> type[Rotation]:
+    """SciPy's ``Rotation``, imported on first use."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def _as_quat(q: np.ndarray, name: str = "quaternions") -> np.ndarray:
@@ -122,7 +132,7 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     r = np.asarray(r, dtype=np.float64)
     if r.shape[-2:] != (3, 3):
         raise InputError(f"rotation matrices: expected shape (..., 3, 3), got {r.shape}")
-    q = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat()
+    q = _rotation().from_matrix(r.reshape(-1, 3, 3)).as_quat()
     return quat_normalize(q).reshape(r.shape[:-2] + (4,))
 
 
@@ -138,13 +148,13 @@ def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
         else:
             scale = math.sin(angle / 2) / angle
         return np.array([x * scale, y * scale, z * scale, math.cos(angle / 2)])
-    return Rotation.from_rotvec(v.reshape(-1, 3)).as_quat().reshape(v.shape[:-1] + (4,))
+    return _rotation().from_rotvec(v.reshape(-1, 3)).as_quat().reshape(v.shape[:-1] + (4,))
 
 
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     """(..., 4) quaternions -> (..., 3) rotation vectors (axis * angle, radians)."""
     q = quat_normalize(q)
-    return Rotation.from_quat(q.reshape(-1, 4)).as_rotvec().reshape(q.shape[:-1] + (3,))
+    return _rotation().from_quat(q.reshape(-1, 4)).as_rotvec().reshape(q.shape[:-1] + (3,))
 
 
 def euler_zyx_to_quat(
@@ -160,7 +170,7 @@ def euler_zyx_to_quat(
     """
     r, p, y = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (roll, pitch, yaw)))
     angles = np.stack([y, p, r], axis=-1).reshape(-1, 3)
-    return Rotation.from_euler("ZYX", angles).as_quat().reshape(r.shape + (4,))
+    return _rotation().from_euler("ZYX", angles).as_quat().reshape(r.shape + (4,))
 
 
 def quat_to_euler_zyx(q: np.ndarray) -> np.ndarray:
@@ -214,7 +224,9 @@ def quat_slerp(times: np.ndarray, quats: np.ndarray, query: np.ndarray) -> np.nd
     times, quats = times[last], quats[last]
     if len(times) == 1:
         return np.repeat(quats, len(query), axis=0)
-    slerp = Slerp(times, Rotation.from_quat(quats))
+    from scipy.spatial.transform import Slerp
+
+    slerp = Slerp(times, _rotation().from_quat(quats))
     return quat_normalize(slerp(np.clip(query, times[0], times[-1])).as_quat())
 
 

@@ -27,40 +27,43 @@ from types import ModuleType
 
 import numpy as np
 
-from ..engine import ENGINES, ENV_VARIABLE, check_engine, load_compiled, requested
+from ..engine import ENGINES, ENV_VARIABLE, Kernels, check_engine, requested
 
 log = logging.getLogger(__name__)
 
 __all__ = ["ENGINES", "ENV_VARIABLE", "check_engine", "compiled_kernels", "resolve"]
 
-_state: dict[str, ModuleType | None] = {}
+
+def _load() -> ModuleType:
+    from . import _compiled
+
+    _warm(_compiled)
+    return _compiled
 
 
-def compiled_kernels() -> ModuleType | None:
+_KERNELS: Kernels[ModuleType] = Kernels(_load, "the vocabulary transform")
+
+
+def compiled_kernels(wait: bool = True) -> ModuleType | None:
     """The compiled kernels module, or None when numba is missing or does not work here.
 
-    The first call imports numba and compiles (or loads from the cache) the kernels on a tiny
-    input, so that a failure shows here, once, and the caller falls back to NumPy.
+    Loading imports numba and compiles (or loads from the cache) the kernels on a tiny input,
+    so that a failure shows there, once, and the caller falls back to NumPy. ``wait=False``
+    starts that in the background and answers None until it is done (see
+    :mod:`stablecues.engine`).
     """
-    if "kernels" not in _state:
-        _state["kernels"] = _load_kernels()
-    return _state["kernels"]
+    return _KERNELS.get(wait)
+
+
+def kernels_settled() -> bool:
+    """Whether loading the kernels has finished (loaded, or found unavailable here)."""
+    return _KERNELS.loaded() is not None or _KERNELS.failed()
 
 
 def loaded_kernels() -> ModuleType | None:
-    """The compiled kernels module if an earlier call of :func:`compiled_kernels` loaded it
-    (never loads it: numba's import costs about a second in a fresh process)."""
-    return _state.get("kernels")
-
-
-def _load_kernels() -> ModuleType | None:
-    def load() -> ModuleType:
-        from . import _compiled
-
-        _warm(_compiled)
-        return _compiled
-
-    return load_compiled(load, "the vocabulary transform")
+    """The compiled kernels module if it is loaded already (never loads it: numba's import
+    costs about a second in a fresh process)."""
+    return _KERNELS.loaded()
 
 
 def _warm(kernels: ModuleType) -> None:
@@ -108,8 +111,8 @@ def resolve(name: str) -> str:
             the command that installs it.
     """
     choice = requested(name)
-    if choice == "auto":
-        return "compiled" if compiled_kernels() is not None else "numpy"
+    if choice == "auto":  # compiled once loaded; NumPy while they load in the background
+        return "compiled" if compiled_kernels(wait=False) is not None else "numpy"
     if choice == "compiled" and compiled_kernels() is None:
         raise ImportError(
             "the compiled vocabulary engine needs numba, which is missing or failed to compile "

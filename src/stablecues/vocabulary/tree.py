@@ -224,12 +224,17 @@ class Vocabulary:
         """The engine this vocabulary's transforms run on: ``"compiled"`` or ``"numpy"``.
 
         Set it to ``"auto"`` (the default: compiled when numba works here), ``"compiled"`` or
-        ``"numpy"``; both engines give identical results (see :mod:`.engine`). Reading it the
-        first time under ``"auto"`` loads the compiled kernels.
+        ``"numpy"``; both engines give identical results (see :mod:`.engine`). Under ``"auto"``
+        reading it starts loading the compiled kernels in the background and answers
+        ``"numpy"`` until they are there (:meth:`warm_up` waits for them).
         """
-        if self._engine is None:
-            self._engine = _engine.resolve(self._engine_request)
-        return self._engine
+        if self._engine is not None:
+            return self._engine
+        value = _engine.resolve(self._engine_request)
+        settled = value == "compiled" or _engine.kernels_settled()
+        if settled or _engine.requested(self._engine_request) != "auto":
+            self._engine = value  # the kernels are there, or were not asked for, or failed here
+        return value
 
     @engine.setter
     def engine(self, name: str) -> None:
@@ -245,6 +250,8 @@ class Vocabulary:
         seconds). Call it when a SLAM system starts, before the loop. Returns the engine.
         """
         self.direct_index_table()
+        if _engine.requested(self._engine_request) == "auto":
+            _engine.compiled_kernels(wait=True)
         return self.engine
 
     def info(self) -> VocabularyInfo:
