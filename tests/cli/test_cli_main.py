@@ -104,3 +104,22 @@ def test_help_builds_only_the_command_asked_for() -> None:
     every = build_parser()  # all of them in full still build
     for name in COMMANDS:
         assert name in every.format_help()
+
+
+def test_a_reader_that_leaves_early_is_no_traceback(tmp_path: Path) -> None:
+    """`stablecues eval RUN | head` ended with a BrokenPipeError traceback: the command stops
+    quietly (exit 1) when its reader goes away."""
+    import subprocess
+    import sys
+
+    from conftest import write_wall_drive
+
+    (tmp_path / "frames").mkdir()
+    frames = write_wall_drive(tmp_path / "frames", 4)
+    proc = subprocess.Popen([sys.executable, "-m", "stablecues.cli.main", "info", str(frames)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader is gone before the command writes
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

@@ -160,11 +160,14 @@ class SyntheticTown:
         """fx times the baseline (pixels x metres): disparity = bf / depth."""
         return self.intrinsics.fx * self.config.baseline
 
-    def calibration_yaml(self) -> str:
-        """ORB-SLAM settings text for this camera (stereo rectified, depth PNG factor)."""
+    def calibration_yaml(self, depth: bool = True) -> str:
+        """ORB-SLAM settings text for this camera (stereo rectified; the depth PNG factor when
+        ``depth``: a settings file with one is read as an RGB-D camera, whose right images
+        would then never be used)."""
         c, cfg = self.intrinsics, self.config
         fps = cfg.speed / self.step
-        return "\n".join(
+        lines = (
+
             [
                 "%YAML:1.0",
                 f"# stablecues synthetic town: seed {cfg.seed}, {cfg.frames} frames, {cfg.loops} revisits",
@@ -186,10 +189,11 @@ class SyntheticTown:
                 f"Stereo.b: {cfg.baseline:.9f}",
                 "Camera.RGB: 1",
                 "ThDepth: 40.0",
-                f"DepthMapFactor: {cfg.depth_map_factor:.6f}",
+                *([f"DepthMapFactor: {cfg.depth_map_factor:.6f}"] if depth else []),
                 "",
             ]
         )
+        return "\n".join(lines)
 
     # ------------------------------------------------------------------ per lap
 
@@ -480,7 +484,7 @@ def write_sequence(
         "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n"
         + "".join(_tum_line(float(t), p) + "\n" for t, p in zip(seq.times, seq.poses, strict=True))
     )
-    (out / "calib.yaml").write_text(seq.calibration_yaml())
+    (out / "calib.yaml").write_text(seq.calibration_yaml(depth=depth))
     meta = {
         "generator": "stablecues.synthetic",
         "config": asdict(config),
