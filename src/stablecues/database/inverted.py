@@ -43,6 +43,7 @@ from .segments import (
     SegmentDamaged,
     Sink,
     empty_postings,
+    ensure_all_verified,
     ensure_verified,
     pack_postings,
     sort_blocks,
@@ -643,8 +644,8 @@ class InvertedIndex:
         snap = snap or self._snapshot()
         post_parts: list[np.ndarray] = []
         v_parts: list[np.ndarray] = []
+        ensure_all_verified(snap.segments, snap.n_entries)  # the files of a reopened map, in parallel
         for seg in snap.segments:
-            ensure_verified(seg, snap.n_entries)
             got = seg.gather(words, values)
             if got is not None:
                 post_parts.append(got[0])
