@@ -401,7 +401,60 @@ def first_decision(runs: int = 5) -> dict[str, object]:
     return out
 
 
-SECTIONS = ("vocabulary", "database", "end_to_end", "first_decision")
+def growing_map(tail: int | None = None, repeat: int = 3) -> dict[str, object]:
+    """A map queried after every add, as a SLAM system queries while it maps: the 233 CamVid
+    test frames (ORB 1000, the shipped vocabulary, top-50 query), and 10,000 synthetic entries
+    of the same vocabulary (``engine_synth.py``) queried after every 10th add. Median and p90
+    of the queries (all, and the last 50), median and max of the adds; ``tail`` is
+    ``DatabaseConfig.tail_postings`` (None: the default). Medians over ``repeat`` runs."""
+    from stablecues.database import DatabaseConfig
+
+    voc = default_vocabulary()
+    voc.warm_up()
+    files = sorted((SHARED / "camvid" / "test").glob("*.jpg"))[:233]  # the peers' run's frames
+    orb = OrbExtractor()
+    rng = np.random.default_rng(0)
+    real = [orb.extract(read_image(f, "8bit-grey")).descriptors for f in files]
+    config = DatabaseConfig() if tail is None else DatabaseConfig(tail_postings=tail)
+    out: dict[str, object] = {"tail_postings": config.tail_postings, "load_average": load_average()}
+
+    def one(descs: list[np.ndarray], every: int) -> dict[str, float]:
+        bows = [voc.transform(d) for d in descs]
+        feats = [fake_features(d, rng) for d in descs]
+        db = Database(voc, None, config)
+        adds, queries = [], []
+        for i, (bow, fvec) in enumerate(bows):
+            t = time.perf_counter()
+            db.add(bow, fvec, feats[i], timestamp=float(i))
+            adds.append(time.perf_counter() - t)
+            if i % every == 0:
+                t = time.perf_counter()
+                db.query(bow, max_results=50)
+                queries.append(time.perf_counter() - t)
+        db.close()
+        q, a = np.array(queries) * 1e3, np.array(adds) * 1e3
+        return {"query_ms_median": float(np.median(q)), "query_ms_p90": float(np.percentile(q, 90)),
+                "query_ms_last50_median": float(np.median(q[-50:])), "add_ms_median": float(np.median(a)),
+                "add_ms_mean": float(a.mean()), "add_ms_max": float(a.max())}
+
+    def medians(runs: list[dict[str, float]]) -> dict[str, float]:
+        return {k: round(float(np.median([r[k] for r in runs])), 3) for k in runs[0]}
+
+    figures: dict[str, dict[str, float]] = {}
+    if real:
+        figures["camvid_233_every_add"] = medians([one(real, 1) for _ in range(repeat)])
+    maker = EntryMaker(voc, seed=1)
+    synth = [maker.next() for _ in range(10_000)]
+    figures["synthetic_10k_every_10th_add"] = medians([one(synth, 10) for _ in range(max(1, repeat - 1))])
+    for key, r in figures.items():
+        print(f"  growing map, tail {config.tail_postings}, {key}: query median {r['query_ms_median']:.3f} "
+              f"p90 {r['query_ms_p90']:.3f} last 50 {r['query_ms_last50_median']:.3f} ms; add mean "
+              f"{r['add_ms_mean']:.3f} max {r['add_ms_max']:.1f} ms", flush=True)
+    out.update(figures)
+    return out
+
+
+SECTIONS = ("vocabulary", "database", "end_to_end", "first_decision", "growing")
 
 
 def median_of_runs(runs: list[dict[str, object]]) -> dict[str, object]:
@@ -429,6 +482,8 @@ def main() -> None:
     ap.add_argument("--vocabulary-runs", type=int, default=3,
                     help="repeat the vocabulary section; each figure is the median over the runs")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "engine.json")
+    ap.add_argument("--tails", type=int, nargs="+", default=[65536, 16384, 8192],
+                    help="growing: the DatabaseConfig.tail_postings values compared")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -450,6 +505,10 @@ def main() -> None:
         if "database" in args.sections:
             results.update(database_section(args, tmp))
             results["database_measured"] = time.strftime("%Y-%m-%d %H:%M")
+    if "growing" in args.sections:
+        print("a map queried while it grows ...", flush=True)
+        results["growing"] = {str(t): growing_map(t) for t in args.tails}
+        results["growing_measured"] = time.strftime("%Y-%m-%d %H:%M")
     if "first_decision" in args.sections:
         print("time to the first decision, fresh processes ...", flush=True)
         results["first_decision"] = first_decision()
