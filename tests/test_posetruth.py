@@ -43,6 +43,9 @@ def test_the_rule_on_a_made_up_walk() -> None:
     untimed = PoseSource(poses, None, "walk", None)
     assert pose_ground_truth(untimed, LoopRule(0.5, 30.0, min_gap_frames=4)).matrix.sum() == 0
     assert pose_ground_truth(untimed, LoopRule(0.5, 30.0, min_gap_frames=3)).matrix[3, 0]
+    # without times no 20 s gap applies: a camera would close loops with its last frames
+    with pytest.raises(InputError, match="no times.*--min-gap-frames N"):
+        pose_ground_truth(untimed, LoopRule(0.5, 30.0))
     for bad in ({"max_distance": -1}, {"max_distance": 1, "max_angle_deg": 200},
                 {"max_distance": 1, "min_gap_s": float("nan")}):
         with pytest.raises(InputError):
@@ -144,7 +147,12 @@ def test_eval_gt_poses_equals_eval_on_the_written_matrix(
     a, b = (json.loads((tmp_path / f"{k}.json").read_text()) for k in "ab")
     for key in ("tp", "fp", "fn", "positives", "recall_at_100p", "gt_loops"):
         assert a[key] == b[key], key
-    assert b["gt_file"] == str(seq / "poses.txt") and b["gt_notes"]["from_poses"]["max_distance"] == 8
+    # the matrix is kept beside the run (report reads it back), the pose file and its hash in the notes
+    assert b["gt_file"] == str(run / "gt_poses.npy") and b["gt_notes"]["from_poses"]["max_distance"] == 8
+    assert b["gt_notes"]["from_poses"]["pose_file"] == str(seq / "poses.txt")
+    assert len(b["gt_notes"]["from_poses"]["pose_file_sha256"]) == 64
+    assert main(["report", str(run), "--out", str(tmp_path / "r.html")]) == 0
+    assert "ground truth not shown" not in capsys.readouterr().err
     assert main(["eval", str(run), "--gt-poses", str(seq)]) == 1
     assert "needs --max-distance" in capsys.readouterr().err
     assert main(["eval", str(run), "--gt-poses", str(seq), "--gt", str(tmp_path / "gt.npy"), *rule]) == 1

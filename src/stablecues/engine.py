@@ -23,6 +23,7 @@ import gc
 import logging
 import os
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
@@ -94,24 +95,30 @@ class Kernels(Generic[T]):
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
         self._value: T | None = None
+        _ALL_KERNELS.add(self)  # type: ignore[arg-type]
 
     def get(self, wait: bool = True) -> T | None:
-        """The kernels, or None (not loaded yet with ``wait=False``, or unavailable here)."""
+        """The kernels, or None (not loaded yet with ``wait=False``, or unavailable here). The
+        load always runs in its own thread, so that a caller that does not wait never blocks
+        behind one that does."""
         if self._done.is_set():
             return self._value
         if not wait and os.environ.get(COMPILE_VARIABLE, "").strip().lower() == "wait":
             wait = True
         with self._lock:
             if self._thread is None and not self._done.is_set():
-                if wait:  # nobody started it: load here
-                    self._run()
-                    return self._value
                 self._thread = threading.Thread(target=self._run, name=f"stablecues: load {self.what}",
                                                 daemon=True)
                 self._thread.start()
         if wait:
             self._done.wait()
         return self._value if self._done.is_set() else None
+
+    def _after_fork(self) -> None:
+        """In a child forked while the load ran: the thread did not come along; start over."""
+        if not self._done.is_set():
+            self._lock = threading.Lock()
+            self._thread = None
 
     def loaded(self) -> T | None:
         """The kernels if they are loaded already, else None (never starts a load)."""
@@ -126,6 +133,18 @@ class Kernels(Generic[T]):
             self._value = load_compiled(self._load, self.what)
         finally:
             self._done.set()
+
+
+_ALL_KERNELS: weakref.WeakSet[Kernels[object]] = weakref.WeakSet()
+
+
+def _reset_after_fork() -> None:
+    for kernels in list(_ALL_KERNELS):
+        kernels._after_fork()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_reset_after_fork)
 
 
 _settled: list[bool] = []

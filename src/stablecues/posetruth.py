@@ -208,6 +208,10 @@ def pose_ground_truth(source: PoseSource, rule: LoopRule) -> GroundTruth:
     n = poses.shape[0]
     check_loop_frames(n, source.source)
     timed = source.times is not None and bool(np.isfinite(source.times).any())
+    if not timed and rule.min_gap_frames <= 1 and rule.min_gap_s is None:
+        raise InputError(f"{source.source}: the frames have no times, so no 20 s gap keeps a camera from "
+                         "closing loops with its own last frames: give --min-gap-frames N (or --min-gap-s "
+                         "with timed frames)")
     times = source.times if timed else None
     rotations = poses[:, :3, :3] if rule.max_angle_deg is not None else None
     matrix = loops_from_poses(
@@ -216,7 +220,8 @@ def pose_ground_truth(source: PoseSource, rule: LoopRule) -> GroundTruth:
         min_gap_frames=rule.min_gap_frames,
     )
     missing = int((~np.isfinite(poses[:, :3, 3]).all(axis=1)).sum())
-    notes = {"from_poses": {
+    untimed = 0 if times is None else int((~np.isfinite(times)).sum())  # they close no loop either
+    notes = {"from_poses": {"frames_without_time": untimed,
         "source": source.source, "rule": rule.describe(timed), "max_distance": rule.max_distance,
         "max_angle_deg": rule.max_angle_deg, "min_gap_s": rule.gap_s(timed) if timed else None,
         "min_gap_frames": rule.min_gap_frames, "frames_without_pose": missing,

@@ -13,6 +13,9 @@ if TYPE_CHECKING:
     from ..groundtruth import GroundTruth
     from ..runs import Run
 
+#: the loop matrix `eval --gt-poses` makes, written into the run's folder
+POSE_GT_FILE = "gt_poses.npy"
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -194,6 +197,8 @@ def _pose_truth(args: argparse.Namespace, run_: Run, n_frames: int | None) -> Gr
     import numpy as np
 
     from ..errors import DatasetError
+    from ..groundtruth import GroundTruth, sha256_file
+    from ..outputs import output_file
     from ..posetruth import frame_poses, pose_ground_truth
 
     rule = loop_rule_from_args(args, "--gt-poses")
@@ -210,4 +215,13 @@ def _pose_truth(args: argparse.Namespace, run_: Run, n_frames: int | None) -> Gr
     if n_frames is not None and source.poses.shape[0] != n_frames:
         raise DatasetError(f"{src}: poses for {source.poses.shape[0]} frames, but the run's dataset has "
                            f"{n_frames}")
-    return pose_ground_truth(source, rule)
+    made = pose_ground_truth(source, rule)
+    # kept beside the run, so that `report` and a later `eval` read the same matrix; the pose
+    # file and its hash stay in the notes
+    target = run_.path / POSE_GT_FILE
+    with output_file(target, "ground truth") as tmp:
+        np.save(tmp, made.matrix)
+    pose_file = None if made.path is None else str(made.path)
+    notes = {"from_poses": {**made.notes["from_poses"], "pose_file": pose_file,
+                            "pose_file_sha256": made.sha256}}
+    return GroundTruth(made.matrix, path=target, sha256=sha256_file(target), notes=notes)

@@ -159,10 +159,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # `stablecues eval RUN | head`: the reader left; no traceback
+    except BrokenPipeError as exc:
+        if not _stdout_gone():  # another pipe (a worker, a socket): a real failure, said in one line
+            print(f"stablecues {args.command}: error: {one_line(str(exc) or 'broken pipe')}", file=sys.stderr)
+            return 1
+        # `stablecues eval RUN | head`: the reader left; no traceback, and nothing more to say
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python's flush at exit would raise again
         return 1
+
+
+def _stdout_gone() -> bool:
+    """Whether standard output is a pipe whose reader has left."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        return True
+    except (OSError, ValueError):
+        return False
+    return False
 
 
 if __name__ == "__main__":

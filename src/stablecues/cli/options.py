@@ -103,12 +103,13 @@ FORMAT_HELP = "auto | folder | tum | kitti | euroc | fabmap | vprbench | rosbag 
 #: the folder format's layout, for the epilog of the commands that read datasets
 FOLDER_LAYOUT = """\
 folder layout (--format folder; everything but the images optional):
-  DIR/images/ (or DIR/frames/, or DIR itself)  the images, in name order (digit runs as numbers)
+  DIR/images/ (or frames/, color/, or DIR)     the images, in name order (digit runs as numbers)
   DIR/right/  DIR/depth/  DIR/labels/          the same names: right image, 16-bit depth, class ids
   DIR/times.txt  DIR/poses.txt                 one timestamp (s) / TUM pose (t x y z qx qy qz qw) a line
   DIR/calib.yaml                               ORB-SLAM settings (Camera.fx, ..., Camera.bf,
                                                DepthMapFactor); --calib FILE takes another
-  DIR/loops.npy (or gt.npy, gt.png)            loop ground truth, N x N
+  DIR/loops.npy                                loop ground truth, N x N (beside an images/,
+                                               frames/ or color/ folder also gt.npy or gt.png)
 """
 
 

@@ -821,10 +821,13 @@ def ensure_all_verified(segs: Sequence[Segment], n_entries: int) -> None:
     from concurrent.futures import ThreadPoolExecutor
 
     with _VERIFYING:
-        todo = [s for s in todo if not s.verified]
-        workers = min(len(todo), os.cpu_count() or 1)
-        with ThreadPoolExecutor(workers, thread_name_prefix="stablecues-verify") as pool:
-            problems = list(pool.map(lambda seg: verify_segment(seg, n_entries), todo))
+        todo = [s for s in todo if not s.verified]  # another thread may have checked them meanwhile
+        if len(todo) < 2:
+            problems = [verify_segment(seg, n_entries) for seg in todo]
+        else:
+            workers = min(len(todo), os.cpu_count() or 1)
+            with ThreadPoolExecutor(workers, thread_name_prefix="stablecues-verify") as pool:
+                problems = list(pool.map(lambda seg: verify_segment(seg, n_entries), todo))
         for seg, problem in zip(todo, problems, strict=True):
             if problem is not None:
                 raise SegmentDamaged(problem, seg)

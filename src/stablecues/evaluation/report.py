@@ -497,8 +497,9 @@ def _run_section(k: int, run: Run, shown: _Shown, pictures: _Pictures, max_loops
         *_loops_section(k, run, shown, pictures, max_loops),
         *_status_section(run),
         "<h3>Time per stage (ms)</h3>",
-        "<p class='note'>The first frame loads the models and compiled code: its time is given apart "
-        "and left out of the other figures.</p>",
+        *(["<p class='note'>The first frame loads the models and compiled code: its time is given "
+           "apart and left out of the other figures.</p>"]
+          if any(v.get("first") is not None for v in run.timings().values()) else []),
         _table(["stage", "mean", "std", "min", "max", "frames", "first frame"], trows),
     ]
 

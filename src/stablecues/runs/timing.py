@@ -57,7 +57,7 @@ def timing_table(
 def format_timing_table(table: Mapping[str, Mapping[str, float | int | None]]) -> str:
     """Plain-text rendering of :func:`timing_table`'s result, one line per stage; the first
     frame's warm-up (``first``) in a column of its own when the table keeps it apart."""
-    apart = any("first" in row for row in table.values())
+    apart = any(row.get("first") is not None for row in table.values())
     lines = [f"{'stage':<20} {'mean':>9} {'std':>9} {'min':>9} {'max':>9} {'count':>7}"
              + (f" {'1st frame':>10}" if apart else "") + "  (ms)"]
     for name, row in table.items():

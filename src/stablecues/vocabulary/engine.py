@@ -55,9 +55,9 @@ def compiled_kernels(wait: bool = True) -> ModuleType | None:
     return _KERNELS.get(wait)
 
 
-def kernels_settled() -> bool:
-    """Whether loading the kernels has finished (loaded, or found unavailable here)."""
-    return _KERNELS.loaded() is not None or _KERNELS.failed()
+def kernels_failed() -> bool:
+    """Whether loading the kernels has finished without them (numba missing or failing here)."""
+    return _KERNELS.failed()
 
 
 def loaded_kernels() -> ModuleType | None:

@@ -231,7 +231,7 @@ class Vocabulary:
         if self._engine is not None:
             return self._engine
         value = _engine.resolve(self._engine_request)
-        settled = value == "compiled" or _engine.kernels_settled()
+        settled = value == "compiled" or _engine.kernels_failed()
         if settled or _engine.requested(self._engine_request) != "auto":
             self._engine = value  # the kernels are there, or were not asked for, or failed here
         return value
