@@ -381,3 +381,30 @@ def test_a_vocabulary_whose_content_does_not_match_its_fingerprint_is_refused(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "does not match the fingerprint" in err
     assert load_vocabulary(original).fingerprint == load_vocabulary(original, mmap=True).fingerprint
+
+
+def test_a_mapped_vocabulary_loads_at_once_and_is_checked_on_first_use(tmp_path: Path) -> None:
+    """`load_vocabulary(..., mmap=True)` (the shipped vocabularies load so) reads the header and
+    maps the arrays: the CRC and the tree's checks run when the vocabulary is first used, and a
+    damaged file is refused there in one line naming it (issue 38: a load in under a
+    millisecond, its integrity still checked). A pickled copy is checked before it travels."""
+    import pickle
+
+    from stablecues.vocabulary import default_vocabulary_path, load_vocabulary
+
+    original = default_vocabulary_path("xfeat")
+    bad = tmp_path / "flipped.scv"
+    raw = bytearray(original.read_bytes())
+    raw[-100] ^= 0x01  # a byte of the children table: only the CRC sees it
+    bad.write_bytes(bytes(raw))
+    voc = load_vocabulary(bad, mmap=True)  # no error yet: nothing was checked
+    with pytest.raises(VocabularyError, match=r"flipped.scv: vocabulary checksum mismatch") as err:
+        voc.transform(np.zeros((3, 64), np.float32))
+    assert "\n" not in str(err.value)
+    with pytest.raises(VocabularyError, match="checksum mismatch"):
+        load_vocabulary(bad)  # read whole: checked at once, as before
+    good = load_vocabulary(original, mmap=True)
+    twin = pickle.loads(pickle.dumps(good))
+    d = np.random.default_rng(0).standard_normal((40, 64)).astype(np.float32)
+    assert twin.fingerprint == load_vocabulary(original).fingerprint
+    np.testing.assert_array_equal(twin.transform(d)[0].words, good.transform(d)[0].words)

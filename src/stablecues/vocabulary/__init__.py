@@ -75,4 +75,4 @@ def default_vocabulary(features: str = "orb") -> Vocabulary:
 def _load_default(features: str) -> Vocabulary:
     from .io import load_vocabulary
 
-    return load_vocabulary(default_vocabulary_path(features))
+    return load_vocabulary(default_vocabulary_path(features), mmap=True)  # checked on first use

@@ -134,7 +134,9 @@ def load_vocabulary(path: str | Path, levels_up: int | None = None, mmap: bool =
         path: binary (``SCVOCAB``) or DBoW2 / ORB-SLAM text file.
         levels_up: direct-index level of the returned vocabulary; None: the level a binary
             file records, or ``L - 2`` for text files.
-        mmap: memory-map a binary file instead of reading it (the CRC is still checked).
+        mmap: memory-map a binary file instead of reading it: the load then takes about a
+            millisecond, and the CRC and the tree's checks run when the vocabulary is first
+            used (its first transform, or a map made with it), raising there.
 
     Raises:
         VocabularyError: missing, truncated, corrupt or not a vocabulary file.
@@ -186,8 +188,13 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
             f"{path}: truncated vocabulary file: {raw.size} bytes, expected {start + size}"
         )
     payload = raw[start : start + size]
-    if zlib.crc32(np.ascontiguousarray(payload).data) != header.get("payload_crc32"):
-        raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
+
+    def check_payload() -> None:  # run before the vocabulary is first used (a load stays ~1 ms)
+        if zlib.crc32(np.ascontiguousarray(payload).data) != header.get("payload_crc32"):
+            raise VocabularyError(f"{path}: vocabulary checksum mismatch (corrupt file)")
+
+    if not mmap:
+        check_payload()  # the file is in memory already: check it now
     arrays = {name: _binary_array(path, payload, header, name, layout[name]) for name in layout}
     up = header["levels_up"] if levels_up is None else levels_up
     try:
@@ -195,6 +202,7 @@ def _load_binary(path: Path, levels_up: int | None, mmap: bool) -> Vocabulary:
             header["k"], header["L"], arrays["parents"], arrays["descriptors"], arrays["weights"],
             Weighting(header["weighting"]), Scoring(header["scoring"]), levels_up=up,
             children=arrays["children"], claimed_fingerprint=header["fingerprint"], source=str(path),
+            deferred=check_payload if mmap else None,
         )
     except VocabularyError as exc:
         raise VocabularyError(f"{path}: {str(exc).removeprefix('vocabulary: ')}") from exc

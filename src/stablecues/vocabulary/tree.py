@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +40,68 @@ class VocabularyInfo:
     scoring: str
     max_depth: int
     fingerprint: str
+
+
+class _Prepared:
+    """An attribute of :class:`Vocabulary` that :meth:`Vocabulary._prepare` builds: reading it
+    before prepares the vocabulary; after, the value sits in the instance's dict, which a
+    non-data descriptor like this one leaves to plain attribute lookup (no cost per read)."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        obj._prepare()
+        try:
+            return obj.__dict__[self.name]
+        except KeyError:
+            raise AttributeError(self.name) from None
+
+
+def _search_tables(descriptors: np.ndarray, n: int, inner: np.ndarray, kids: np.ndarray) -> dict[str, Any]:
+    """Per inner node, its children's centres side by side: one contiguous (w * 4) uint64 row,
+    so each level of the descent gathers one block per descriptor.
+
+    Args:
+        descriptors: (n, B) uint8 or (n, D) float32 centres.
+        n: the number of nodes.
+        inner: (I,) int32 ids of the nodes that have children, ascending.
+        kids: (I, w) int32 their children in id order, -1 padded.
+    """
+    row = np.full(n, -1, np.int32)  # row of each inner node, -1: a leaf
+    row[inner] = np.arange(inner.size, dtype=np.int32)
+    is_float = descriptors.dtype == np.float32
+    # binary: (n, W) uint64 words; float: (n, D) float32 as they are
+    cells = descriptors if is_float else as_words(descriptors)
+    blocks = cells[np.where(kids >= 0, kids, 0)]  # (I, w, W or D)
+    penalty: np.ndarray | None = None
+    missing = kids < 0
+    if missing.any():  # a padded slot is never the nearest child
+        if is_float:
+            penalty = np.where(missing, np.inf, 0.0)
+        else:
+            far = max(1024, 64 * cells.shape[1] + 1)
+            penalty = np.where(missing, far, 0).astype(np.uint32)
+    table = np.ascontiguousarray(blocks.reshape(inner.size, kids.shape[1] * cells.shape[1]))
+    counts = (kids >= 0).sum(axis=1, dtype=np.int32)
+    return {"_row": row, "_blocks": table, "_block_kids": kids, "_block_counts": counts, "_penalty": penalty}
+
+
+def _same_children(given: np.ndarray, n: int, is_leaf: np.ndarray, kids: np.ndarray) -> bool:
+    """Whether ``given`` is the tree's (n, w') children table (w' >= w, -1 padded), or an empty
+    (n, 0) one (not stored)."""
+    given = np.asarray(given)
+    if given.ndim != 2 or given.shape[0] != n:
+        return False
+    if given.shape[1] == 0:
+        return True
+    if given.shape[1] < kids.shape[1]:
+        return False
+    expected = np.full(given.shape, -1, np.int32)
+    expected[~is_leaf, : kids.shape[1]] = kids
+    return bool(np.array_equal(given, expected))
 
 
 class Vocabulary:
@@ -76,6 +140,22 @@ class Vocabulary:
             loaders replace that with the file's name.
     """
 
+    # built by _prepare(), on first use when the vocabulary was made with deferred=True (a file
+    # loaded in a millisecond); read like plain attributes either way
+    parents: np.ndarray = _Prepared()  # type: ignore[assignment]
+    descriptors: np.ndarray = _Prepared()  # type: ignore[assignment]
+    weights: np.ndarray = _Prepared()  # type: ignore[assignment]
+    is_leaf: np.ndarray = _Prepared()  # type: ignore[assignment]
+    word_nodes: np.ndarray = _Prepared()  # type: ignore[assignment]
+    node_word: np.ndarray = _Prepared()  # type: ignore[assignment]
+    depth: np.ndarray = _Prepared()  # type: ignore[assignment]
+    _row: np.ndarray = _Prepared()  # type: ignore[assignment]
+    _blocks: np.ndarray = _Prepared()  # type: ignore[assignment]
+    _block_kids: np.ndarray = _Prepared()  # type: ignore[assignment]
+    _block_counts: np.ndarray = _Prepared()  # type: ignore[assignment]
+    _penalty: np.ndarray | None = _Prepared()  # type: ignore[assignment]
+    _dense_children: np.ndarray | None = _Prepared()  # type: ignore[assignment]
+
     def __init__(
         self,
         k: int,
@@ -90,26 +170,14 @@ class Vocabulary:
         children: np.ndarray | None = None,
         claimed_fingerprint: str | None = None,
         source: str | None = None,
+        deferred: Callable[[], None] | None = None,
     ) -> None:
         check_header(k, levels, levels_up)
         self.k = int(k)
         self.levels = int(levels)
-        self.parents, self.descriptors, self.weights = _check_arrays(parents, descriptors, weights)
         self._kind: DescriptorKind | None = None
         self.weighting = Weighting(weighting)
         self.scoring = Scoring(scoring)
-        n = self.n_nodes
-        inner, kids = _child_table(self.parents, self.k)
-        self.is_leaf = np.ones(n, bool)
-        self.is_leaf[inner] = False
-        self._dense_children: np.ndarray | None = None
-        self._build_search_tables(inner, kids)
-        if children is not None and not self._same_children(children):
-            raise VocabularyError("vocabulary: the children table disagrees with the parents")
-        self.word_nodes = np.flatnonzero(self.is_leaf).astype(np.int32)
-        self.node_word = np.full(n, -1, np.int32)
-        self.node_word[self.word_nodes] = np.arange(self.word_nodes.size, dtype=np.int32)
-        self.depth = _depths(self.parents, self.levels)
         self.levels_up = max(self.levels - 2, 0) if levels_up is None else int(levels_up)
         self._di_cache: dict[int, np.ndarray] = {}
         self._fingerprint = fingerprint
@@ -118,45 +186,65 @@ class Vocabulary:
         self._source = source or "vocabulary"
         self._engine_request = "auto"
         self._engine: str | None = None
+        self._raw: tuple[Any, ...] | None = (parents, descriptors, weights, children, deferred)
+        self._prepare_lock = threading.Lock()
+        if deferred is None:
+            self._prepare()
 
-    def _build_search_tables(self, inner: np.ndarray, kids: np.ndarray) -> None:
-        """Per inner node, its children's centres side by side: one contiguous (w * 4) uint64
-        row, so each level of the descent gathers one block per descriptor.
+    def _prepare(self) -> None:
+        """Check the arrays and build the search tables (once). With ``deferred`` (a file's
+        integrity check: its CRC), that runs first; the loaders pass it so that a load takes a
+        millisecond and the checks run when the vocabulary is first used.
 
-        Args:
-            inner: (I,) int32 ids of the nodes that have children, ascending.
-            kids: (I, w) int32 their children in id order, -1 padded.
+        Raises:
+            VocabularyError: as the constructor (a loader's file name leading the message).
         """
-        self._row = np.full(self.n_nodes, -1, np.int32)  # row of each inner node, -1: a leaf
-        self._row[inner] = np.arange(inner.size, dtype=np.int32)
-        # binary: (n, W) uint64 words; float: (n, D) float32 as they are
-        cells = self.descriptors if self.is_float else as_words(self.descriptors)
-        blocks = cells[np.where(kids >= 0, kids, 0)]  # (I, w, W or D)
-        self._blocks = np.ascontiguousarray(blocks.reshape(inner.size, kids.shape[1] * cells.shape[1]))
-        self._block_kids = kids
-        self._block_counts = (kids >= 0).sum(axis=1, dtype=np.int32)
-        missing = kids < 0
-        self._penalty: np.ndarray | None = None
-        if missing.any():  # a padded slot is never the nearest child
-            if self.is_float:
-                self._penalty = np.where(missing, np.inf, 0.0)
-            else:
-                far = max(1024, 64 * cells.shape[1] + 1)
-                self._penalty = np.where(missing, far, 0).astype(np.uint32)
+        with self._prepare_lock:
+            raw = self._raw
+            if raw is None:
+                return
+            parents, descriptors, weights, children, deferred = raw
+            try:
+                if deferred is not None:
+                    deferred()
+                self.__dict__.update(self._prepared(parents, descriptors, weights, children))
+            except VocabularyError as exc:
+                if deferred is None or self._source == "vocabulary":
+                    raise
+                raise VocabularyError(f"{self._source}: {str(exc).removeprefix('vocabulary: ')}") from None
+            self._raw = None
 
-    def _same_children(self, given: np.ndarray) -> bool:
-        """Whether ``given`` is this tree's (n, w') children table (w' >= w, -1 padded), or an
-        empty (n, 0) one (not stored)."""
-        given = np.asarray(given)
-        if given.ndim != 2 or given.shape[0] != self.n_nodes:
-            return False
-        if given.shape[1] == 0:
-            return True
-        if given.shape[1] < self._block_kids.shape[1]:
-            return False
-        expected = np.full(given.shape, -1, np.int32)
-        expected[~self.is_leaf, : self._block_kids.shape[1]] = self._block_kids
-        return bool(np.array_equal(given, expected))
+    def _prepared(self, parents: np.ndarray, descriptors: np.ndarray, weights: np.ndarray,
+                  children: np.ndarray | None) -> dict[str, Any]:
+        """The attributes :meth:`_prepare` sets."""
+        out: dict[str, Any] = {}
+        out["parents"], out["descriptors"], out["weights"] = _check_arrays(parents, descriptors, weights)
+        n = int(out["parents"].shape[0])
+        inner, kids = _child_table(out["parents"], self.k)
+        is_leaf = np.ones(n, bool)
+        is_leaf[inner] = False
+        out["is_leaf"] = is_leaf
+        out["_dense_children"] = None
+        out.update(_search_tables(out["descriptors"], n, inner, kids))
+        if children is not None and not _same_children(children, n, is_leaf, kids):
+            raise VocabularyError("vocabulary: the children table disagrees with the parents")
+        word_nodes = np.flatnonzero(is_leaf).astype(np.int32)
+        node_word = np.full(n, -1, np.int32)
+        node_word[word_nodes] = np.arange(word_nodes.size, dtype=np.int32)
+        out["word_nodes"], out["node_word"] = word_nodes, node_word
+        out["depth"] = _depths(out["parents"], self.levels)
+        return out
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled prepared (a worker process gets the checked arrays, not the file's check)."""
+        self._prepare()
+        state = dict(self.__dict__)
+        state.pop("_prepare_lock", None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._prepare_lock = threading.Lock()
 
     @property
     def children(self) -> np.ndarray:
