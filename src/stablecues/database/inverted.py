@@ -45,6 +45,7 @@ from .segments import (
     empty_postings,
     ensure_all_verified,
     ensure_verified,
+    gather_runs,
     pack_postings,
     sort_blocks,
     split,
@@ -83,6 +84,17 @@ class _Block:
     words: np.ndarray
     postings: np.ndarray
     sessions: np.ndarray
+    _view: tuple[np.ndarray, np.ndarray] | None = None
+
+    def view(self) -> tuple[np.ndarray, np.ndarray]:
+        """Its words and postings in word order (a stable sort: entries ascending within a
+        word, as a segment keeps them), made once, by the first query that needs it: a query
+        then finds each of its words by binary search instead of reading every posting."""
+        view = self._view
+        if view is None:
+            order = np.argsort(self.words, kind="stable")
+            view = self._view = (self.words[order], self.postings[order])
+        return view
 
 
 @dataclass(eq=False)
@@ -108,29 +120,48 @@ class _Job:
 @dataclass(frozen=True)
 class _Snapshot:
     segments: tuple[Segment, ...]
-    unsorted: tuple[tuple[np.ndarray, np.ndarray], ...]
+    blocks: tuple[_Block, ...]  # sealed: searched through their word-sorted view
+    unsorted: tuple[tuple[np.ndarray, np.ndarray], ...]  # the tail: read whole
     n_entries: int
     alive: np.ndarray | None
 
 
 @dataclass
 class _Tail:
-    """The latest additions, entries ``lo .. lo + len(sessions) - 1``, as handed in."""
+    """The latest additions, entries ``lo .. lo + len(sessions) - 1``: their words and postings
+    appended to buffers that grow by doubling, so that a query's snapshot takes the first k
+    entries as views (appends only write past them; a grown buffer leaves the old one to the
+    views that hold it) instead of joining every entry's arrays again after each add."""
 
     lo: int = 0
-    words: list[np.ndarray] = field(default_factory=list)
-    weights: list[np.ndarray] = field(default_factory=list)
     sessions: list[int] = field(default_factory=list)
     size: int = 0
+    _ends: list[int] = field(default_factory=list)  # postings after each entry
+    _words: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    _postings: np.ndarray = field(default_factory=empty_postings)
+
+    def append(self, words: np.ndarray, weights: np.ndarray, session: int) -> None:
+        n = int(words.shape[0])
+        end = self.size + n
+        if end > self._words.shape[0]:
+            cap = max(2 * self._words.shape[0], end, 1024)
+            grown_w, grown_p = np.empty(cap, np.int32), empty_postings(cap)
+            grown_w[: self.size], grown_p[: self.size] = self._words[: self.size], self._postings[: self.size]
+            self._words, self._postings = grown_w, grown_p
+        entry = self.lo + len(self.sessions)
+        self._words[self.size : end] = words
+        self._postings[self.size : end] = pack_postings(np.full(n, entry, np.int32), weights)
+        self.sessions.append(int(session))
+        self._ends.append(end)
+        self.size = end
 
     def arrays(self, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Words and postings of the first ``k`` entries (all by default)."""
-        words, weights = self.words[:k], self.weights[:k]
-        if not words:
+        """Words and postings of the first ``k`` entries (all by default), as views."""
+        k = len(self._ends) if k is None else k
+        if k <= 0:
             return np.zeros(0, np.int32), empty_postings()
-        counts = np.fromiter((w.shape[0] for w in words), np.int64, len(words))
-        entries = np.repeat(np.arange(self.lo, self.lo + len(words), dtype=np.int32), counts)
-        return np.concatenate(words), pack_postings(entries, np.concatenate(weights))
+        end = self._ends[k - 1]
+        return self._words[:end], self._postings[:end]
 
 
 class InvertedIndex:
@@ -257,10 +288,7 @@ class InvertedIndex:
         with self._lock:
             entry = self.n_entries
             t = self._tail
-            t.words.append(w)
-            t.weights.append(np.asarray(weights, np.float32))
-            t.sessions.append(int(session))
-            t.size += int(w.shape[0])
+            t.append(w, np.asarray(weights, np.float32), session)
             if entry >= self._sessions.shape[0]:
                 self._grow(2 * self._sessions.shape[0])
             self._sessions[entry] = session
@@ -284,8 +312,9 @@ class InvertedIndex:
         t = self._tail
         if not t.sessions:
             return
-        words, postings = t.arrays()
-        block = _Block(t.lo, t.lo + len(t.sessions), words, postings, np.array(t.sessions, np.int32))
+        words, postings = t.arrays()  # copied out of the tail's buffers, which keep spare room
+        block = _Block(t.lo, t.lo + len(t.sessions), words.copy(), postings.copy(),
+                       np.array(t.sessions, np.int32))
         self._blocks.append(block)
         self._tail = _Tail(lo=block.hi)
         self._changed.notify_all()
@@ -612,12 +641,12 @@ class InvertedIndex:
             if snap is not None:
                 return snap
             tail, k = self._tail, len(self._tail.sessions)
-            blocks = [(b.words, b.postings) for b in self._blocks]
+            blocks = tuple(self._blocks)
             segments = tuple(self._segments)
             n, alive = self.n_entries, self._alive
-        if k:
-            blocks.append(tail.arrays(k))  # the tail's lists only grow: its first k entries stay
-        snap = _Snapshot(segments, tuple(blocks), n, alive)
+        # the tail's lists only grow: its first k entries stay
+        unsorted = (tail.arrays(k),) if k else ()
+        snap = _Snapshot(segments, blocks, unsorted, n, alive)
         with self._lock:
             if self.n_entries == n and self._snap is None and self._segments == list(segments):
                 self._snap = snap
@@ -647,6 +676,13 @@ class InvertedIndex:
         ensure_all_verified(snap.segments, snap.n_entries)  # the files of a reopened map, in parallel
         for seg in snap.segments:
             got = seg.gather(words, values)
+            if got is not None:
+                post_parts.append(got[0])
+                v_parts.append(got[1])
+        for block in snap.blocks:  # sealed, waiting to be sorted into a segment: by their view
+            sw, sp = block.view()
+            got = gather_runs(sp, np.searchsorted(sw, words, "left"), np.searchsorted(sw, words, "right"),
+                              values)
             if got is not None:
                 post_parts.append(got[0])
                 v_parts.append(got[1])

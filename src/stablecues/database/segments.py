@@ -71,6 +71,28 @@ def split(postings64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return postings64.view("<i4")[0::2], postings64.view("<f4")[1::2]
 
 
+def gather_runs(
+    p64: np.ndarray, lo: np.ndarray, hi: np.ndarray, values: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The postings ``p64[lo[i]:hi[i]]`` of every query word i, in word order, and the query
+    weight of each (None when every run is empty)."""
+    counts = hi - lo
+    nz = np.flatnonzero(counts)
+    if not nz.size:
+        return None
+    counts = counts[nz]
+    lo = lo[nz]
+    total = int(counts.sum())
+    if nz.size * 32 < total:
+        # long runs: copy each run whole
+        got = np.concatenate([p64[a:b] for a, b in zip(lo.tolist(), (lo + counts).tolist(), strict=True)])
+    else:
+        # many short runs: one vectorised gather of every posting of every run
+        starts = np.cumsum(counts) - counts
+        got = p64[np.repeat(lo - starts, counts) + np.arange(total)]
+    return got, np.repeat(values[nz], counts)
+
+
 def empty_postings(n: int = 0) -> np.ndarray:
     return np.zeros(n, "<i8")
 
@@ -141,22 +163,7 @@ class Segment:
             None when no word is shared.
         """
         lo, hi = self.runs(words)
-        counts = hi - lo
-        nz = np.flatnonzero(counts)
-        if not nz.size:
-            return None
-        counts = counts[nz]
-        lo = lo[nz]
-        total = int(counts.sum())
-        p64 = self.postings
-        if nz.size * 32 < total:
-            # long runs: copy each run whole
-            got = np.concatenate([p64[a:b] for a, b in zip(lo.tolist(), (lo + counts).tolist(), strict=True)])
-        else:
-            # many short runs: one vectorised gather of every posting of every run
-            starts = np.cumsum(counts) - counts
-            got = p64[np.repeat(lo - starts, counts) + np.arange(total)]
-        return got, np.repeat(values[nz], counts)
+        return gather_runs(self.postings, lo, hi, values)
 
     def word_at(self, positions: np.ndarray) -> np.ndarray:
         """Word of the postings at the given offsets."""
