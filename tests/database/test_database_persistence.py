@@ -296,8 +296,10 @@ def test_a_damaged_segment_met_first_by_maintenance_is_rebuilt(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """A damaged segment body met first by a merge (adds, no query) or by `compact` stopped the
-    index's maintenance for the rest of the session ("index maintenance stopped"): the writer
-    now rebuilds it from the entries as a query would, and the merges go on."""
+    index's maintenance for the rest of the session ("index maintenance stopped"). A reopened
+    map's file is now merged only once checked (a merge that checked it stalled an add for
+    seconds at 10^6 entries): the adds go on without touching it, the first query checks it and
+    rebuilds it from the entries; `compact` checks and rebuilds it itself."""
     path = tmp_path / "map.sqlite"
     cfg = DatabaseConfig(tail_postings=500)
     half = len(many_images) // 2
@@ -311,6 +313,8 @@ def test_a_damaged_segment_met_first_by_maintenance_is_rebuilt(
         if first == "merge":
             fill(db, voc, many_images[half:], start=half)
             db.flush()
+            assert not any("maintenance stopped" in r.getMessage() for r in caplog.records)
+            answers(db, voc, many_images[:1])  # the first query checks the reopened files
         else:
             db.remove([3])
             db.compact()

@@ -109,12 +109,13 @@ class DatabaseConfig:
             where a core is free and the adding thread leaves the interpreter idle: on a
             busy 2-core machine the two threads slow each other down).
         tail_postings: postings of the latest additions kept unsorted before they are sealed
-            (and sorted in groups of 4): every query scans the unsorted ones, so a map queried
-            while it grows pays for them. 16,384 took a top-50 query on a 233-frame CamVid map
-            queried after every add from 0.86 to 0.64 ms (median; ``bench_engine.py --sections
-            growing``), but at 10^6 entries the maintenance fell behind the adds: 952 entries/s
-            built instead of 2,994, one add of 3 s, queries at 33 ms instead of 13
-            (``bench_scale.py --parts 1m``); 65,536 is kept.
+            (and sorted in groups of 4): every query reads them all (sealed blocks waiting for
+            their sort are searched through a word-sorted view instead), so a map queried while
+            it grows pays for them. 16,384 was measured too, before the views: the query on a
+            233-frame CamVid map queried after every add fell from 0.86 to 0.64 ms, but at 10^6
+            entries the maintenance fell behind the adds (952 entries/s built instead of 2,994,
+            one add of 3 s, queries at 33 ms instead of 13; ``bench_scale.py --parts 1m``); with
+            the views, 65,536 gives 0.55 ms there (``bench_engine.py --sections growing``).
         merge_chunk: postings merged per maintenance step (about).
         descriptor_storage: how float descriptors (SIFT, learned) are stored: "int8" keeps
             one int8 per dimension and one float32 scale per entry (64 bytes per 64-dim
