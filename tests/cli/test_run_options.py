@@ -197,3 +197,7 @@ def test_run_calib_gives_the_decisions_of_calib_yaml(tmp_path: Path) -> None:
     assert {e.get("points") for e in run.extra()} == {"depth"}
     assert main(["run", str(seq), "--out", str(tmp_path / "bad"), "--calib", str(tmp_path / "none.yaml"),
                  *options]) == 1
+    (tmp_path / "wrong.txt").write_text("1 2 3\n")  # not a calibration: refused before anything is written
+    assert main(["run", str(seq), "--out", str(tmp_path / "bad"), "--calib", str(tmp_path / "wrong.txt"),
+                 *options]) == 1
+    assert not (tmp_path / "bad").exists()

@@ -109,7 +109,10 @@ def run(args: argparse.Namespace) -> int:
     config = preset(args.preset, parse_overrides(args.set))
     vocabulary = vocabulary_from_args(args)
     bag = rosbag_options(args) if is_rosbag(args) else {}
-    if args.calib is not None:
+    if args.calib is not None:  # read now: a bad file is refused before the run folder is made
+        from ..geometry import load_calibration
+
+        load_calibration(args.calib)
         bag["calibration"] = args.calib
     dataset = open_dataset(args.dataset, format=args.format, **bag)
     gt = args.gt if args.gt is not None else dataset.ground_truth_path()

@@ -485,9 +485,10 @@ def _run_section(k: int, run: Run, shown: _Shown, pictures: _Pictures, max_loops
     for key in ("semantics", "score_column"):  # recorded by stablecues run / demo
         if run.meta.get(key):
             meta.append([key.replace("_", " "), run.meta[key]])
+    timings = run.timings()
     trows = [
         [name, v.get("mean"), v.get("std"), v.get("min"), v.get("max"), v.get("count"), v.get("first")]
-        for name, v in run.timings().items()
+        for name, v in timings.items()
     ]
     return [
         f"<h2 id='r{k}'>Run {html.escape(run.name)}</h2>",
@@ -499,7 +500,7 @@ def _run_section(k: int, run: Run, shown: _Shown, pictures: _Pictures, max_loops
         "<h3>Time per stage (ms)</h3>",
         *(["<p class='note'>The first frame loads the models and compiled code: its time is given "
            "apart and left out of the other figures.</p>"]
-          if any(v.get("first") is not None for v in run.timings().values()) else []),
+          if any(v.get("first") is not None for v in timings.values()) else []),
         _table(["stage", "mean", "std", "min", "max", "frames", "first frame"], trows),
     ]
 
