@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("sweep", "run a grid of datasets x presets as tasks on a Dask cluster, into one table"),
     "map": ("mapcmd", "check a map file (what it holds, what is damaged) or repair it"),
     "gt": ("gt", "loop ground truth from camera poses (a dataset's own, TUM, EuRoC or KITTI files)"),
+    "ros2": ("ros2", "the loop detector as a live ROS 2 node over DDS (no ROS install); play a bag to it"),
 }
 
 
