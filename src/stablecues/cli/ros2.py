@@ -85,6 +85,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     echo.add_argument("--count", type=int, help="exit after this many decisions")
     echo.add_argument("--timeout", type=float, metavar="S", help="exit after S seconds without a decision")
     echo.add_argument("--accepted", action="store_true", help="print accepted loops only")
+    echo.add_argument("--raw", type=Path, metavar="FILE",
+                      help="also write each payload as received (CDR, hex) to this file, one a line")
     _common(echo)
     return p
 
@@ -314,6 +316,18 @@ def _echo(args: argparse.Namespace) -> int:
         if d["accepted"] or not args.accepted:
             print(json.dumps(d), flush=True)
 
-    n = listen(show, topic=args.topic, domain=did, count=args.count, timeout=args.timeout, stop=stop.is_set)
+    raw_file = args.raw.open("w") if args.raw is not None else None
+
+    def keep(payload: bytes) -> None:
+        if raw_file is not None:
+            raw_file.write(payload.hex() + "\n")
+            raw_file.flush()
+
+    try:
+        n = listen(show, topic=args.topic, domain=did, count=args.count, timeout=args.timeout,
+                   stop=stop.is_set, raw=keep)
+    finally:
+        if raw_file is not None:
+            raw_file.close()
     logging.getLogger(__name__).info("%d decisions received", n)
     return 0

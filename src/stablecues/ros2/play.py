@@ -193,10 +193,12 @@ def listen(
     count: int | None = None,
     timeout: float | None = None,
     stop: Callable[[], bool] = lambda: False,
+    raw: Callable[[bytes], None] | None = None,
 ) -> int:
     """Subscribe to a LoopClosure topic and call ``on_decision`` with each decision's JSON fields
     (plus ``source_timestamp_ns``, when the node published it, and ``received_ns``).
 
+    ``raw``, when given, gets each payload as received (CDR, padding included) first.
     Returns after ``count`` decisions, ``timeout`` seconds without one, or when ``stop()`` says so;
     returns how many were received.
     """
@@ -215,6 +217,8 @@ def listen(
         for sample in reader.take(64):
             if getattr(sample, "payload", None) is None:
                 continue
+            if raw is not None:
+                raw(sample.payload)
             try:
                 fields = loop_closure_dict(decode(sample.payload, LOOP_CLOSURE, topic))
             except MessageError as exc:
