@@ -76,16 +76,19 @@ def decisions(path: Path) -> list[dict[str, Any]]:
 
 
 def synthetic_bag(path: Path, frames: int = 24) -> Path:
-    """A mono ROS 2 bag of a small synthetic town drive (no shared data needed), with CameraInfo."""
+    """A mono ROS 2 bag of a small synthetic town drive (no shared data needed), with CameraInfo;
+    the camera's positions (frames x 3, world frame) beside it in ``<path>.positions.npy``."""
     from stablecues.geometry import Calibration, PinholeCamera
     from stablecues.synthetic import SyntheticTown, SyntheticTownConfig
 
     cfg = SyntheticTownConfig(frames=frames, width=256, height=192, loops=1, seed=3)
     town = SyntheticTown(cfg)
-    images = []
+    images, positions = [], []
     for k in range(frames):
-        img = town.frame(k).image
-        images.append(img if img.ndim == 2 else np.ascontiguousarray(img))
+        frame = town.frame(k)
+        images.append(np.ascontiguousarray(frame.image))
+        positions.append(np.asarray(frame.pose, np.float64)[:3, 3])
+    np.save(path.with_suffix(".positions.npy"), np.array(positions))
     fx = float(cfg.width)
     cam = PinholeCamera.from_matrix(
         np.array([[fx, 0, cfg.width / 2], [0, fx, cfg.height / 2], [0, 0, 1]]),

@@ -39,7 +39,8 @@ def synbag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def eurocbag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A stereo ROS 2 bag of the EuRoC V1_01 micro sequence, CameraInfo of both cameras beside."""
+    """A stereo ROS 2 bag of the EuRoC V1_01 micro sequence as PNG CompressedImage messages,
+    CameraInfo of both cameras beside."""
     from stablecues.geometry import load_calibration
     from stablecues.imageio import read_image
     from stablecues.ros2.bagwrite import write_image_bag
@@ -50,7 +51,9 @@ def eurocbag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     left = [read_image(mav0 / "cam0" / "data" / n.strip(), "8bit") for _, n in rows]
     right = [read_image(mav0 / "cam1" / "data" / n.strip(), "8bit") for _, n in rows]
     calib = load_calibration(mav0 / "cam0" / "sensor.yaml")
-    return write_image_bag(tmp_path_factory.mktemp("ros2") / "v101", stamps, left, right, calibration=calib)
+    return write_image_bag(
+        tmp_path_factory.mktemp("ros2") / "v101", stamps, left, right, calibration=calib, compressed="png"
+    )
 
 
 def reference(bag: Path, out: Path) -> Any:
@@ -199,9 +202,15 @@ def test_decisions_over_dds_equal_stablecues_run_synthetic(
 def test_stereo_decisions_over_dds_equal_stablecues_run_euroc(
     eurocbag: Path, tmp_path: Path, sessions: list[Processes]
 ) -> None:
-    """Real EuRoC stereo pairs, matched by stamp, calibrated from both CameraInfo topics."""
+    """Real EuRoC stereo pairs (CompressedImage), matched by stamp, calibrated from both CameraInfo
+    topics."""
     run = reference(eurocbag, tmp_path / "run")
-    procs = launch(tmp_path, "e", ["--image", "/cam0/image_raw", "--right", "/cam1/image_raw"], len(run))
+    procs = launch(
+        tmp_path,
+        "e",
+        ["--image", "/cam0/image_raw/compressed", "--right", "/cam1/image_raw/compressed"],
+        len(run),
+    )
     sessions.append(procs)
     play(procs, eurocbag)
     got = finish(procs, "e", len(run))
@@ -273,3 +282,59 @@ def test_malformed_messages_are_one_line_each_and_the_node_goes_on(
     assert "Traceback" not in got.log
     assert got.summary["malformed"] == 3 and got.summary["processed"] == 1
     assert [d["query_index"] for d in got.decisions] == [0]
+
+
+POSES = r"""
+import sys, time
+import numpy as np
+from stablecues.ros2 import dds, messages as m
+positions = np.load(sys.argv[1])
+w = dds.writer(dds.domain_id(), "/robot/pose", m.POSE_STAMPED, "reliable", "opaque", depth=100)
+assert dds.wait_for_readers([w], 30)
+T = dds.topic_type(m.POSE_STAMPED, "opaque")
+t = m.typestore().types
+for k, p in enumerate(positions):
+    pose = np.eye(4); pose[:3, 3] = p
+    msg = t[m.POSE_STAMPED](header=m.header_msg(1_600_000_000_000_000_000 + k * 100_000_000, "map"),
+                           pose=m.pose_msg(pose))
+    w.write(T(m.encode(msg, m.POSE_STAMPED)))
+time.sleep(1.0)
+"""
+
+
+def test_loop_edges_for_rviz_with_a_pose_topic(
+    synbag: Path, tmp_path: Path, sessions: list[Processes], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With a PoseStamped topic, each accepted loop adds a line from the query frame's position to
+    the candidate's, in the poses' frame, to one LINE_LIST marker (RViz's MarkerArray)."""
+    from stablecues.ros2 import dds
+
+    run = reference(synbag, tmp_path / "run")
+    procs = launch(tmp_path, "p", ["--image", "/cam0/image_raw", "--pose", "/robot/pose"], len(run))
+    sessions.append(procs)
+    monkeypatch.setenv("CYCLONEDDS_URI", procs.env["CYCLONEDDS_URI"])
+    did = int(procs.env["ROS_DOMAIN_ID"])
+    markers = dds.reader(did, "/stablecues/loop_markers", m.MARKER_ARRAY, "reliable", "exact", depth=100)
+    positions = np.load(synbag.with_suffix(".positions.npy"))
+    out = subprocess.run(
+        [sys.executable, "-c", POSES, str(synbag.with_suffix(".positions.npy"))],
+        env=procs.env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    play(procs, synbag)
+    got = finish(procs, "p", len(run))
+    arrays = [m.decode(s.payload, m.MARKER_ARRAY) for s in markers.take(100) if getattr(s, "payload", None)]
+    loops = [(d["query_index"], d["candidate_index"]) for d in got.decisions if d["accepted"]]
+    assert loops and len(arrays) == len(loops)
+    marker = arrays[-1].markers[0]
+    assert (
+        marker.type == marker.LINE_LIST
+        and marker.header.frame_id == "map"
+        and marker.ns == "stablecues_loops"
+    )
+    points = np.array([[p.x, p.y, p.z] for p in marker.points])
+    want = np.array([positions[k] for q, c in loops for k in (q, c)])
+    np.testing.assert_allclose(points, want)

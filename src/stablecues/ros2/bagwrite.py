@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import InputError
-from .messages import CAMERA_INFO, IMAGE, encode, header_msg, typestore
+from .messages import CAMERA_INFO, COMPRESSED, IMAGE, encode, header_msg, typestore
 
 if TYPE_CHECKING:
     from ..geometry import Calibration
@@ -54,6 +54,15 @@ def _image_msg(stamp: int, frame_id: str, image: np.ndarray) -> Any:
     )
 
 
+def _compressed_msg(stamp: int, frame_id: str, image: np.ndarray, fmt: str) -> Any:
+    import cv2
+
+    ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", image)
+    if not ok:
+        raise InputError(f"could not encode a {image.shape} image as {fmt}")
+    return typestore().types[COMPRESSED](header=header_msg(stamp, frame_id), format=fmt, data=buf.ravel())
+
+
 def _info_msg(stamp: int, frame_id: str, info: dict[str, Any]) -> Any:
     types = typestore().types
     roi = types["sensor_msgs/msg/RegionOfInterest"](
@@ -83,8 +92,10 @@ def write_image_bag(
     calibration: Calibration | None = None,
     prefix: str = "",
     storage: str = "sqlite3",
+    compressed: str | None = None,
 ) -> Path:
-    """Write a ROS 2 bag (a folder) of ``PREFIX/cam0/image_raw`` (and ``PREFIX/cam1/image_raw``)
+    """Write a ROS 2 bag (a folder) of ``PREFIX/cam0/image_raw`` (and ``PREFIX/cam1/image_raw``;
+    ``.../compressed`` when ``compressed``)
     with a ``camera_info`` beside each (when ``calibration`` is given), one message per image at
     its stamp (the bag time is the stamp).
 
@@ -96,6 +107,8 @@ def write_image_bag(
         calibration: the camera(s), for the CameraInfo messages.
         prefix: a namespace in front of the topics.
         storage: "sqlite3" or "mcap".
+        compressed: None (``sensor_msgs/Image``), or "png" / "jpeg": ``sensor_msgs/CompressedImage``
+            on ``.../image_raw/compressed``.
 
     Returns:
         ``path``.
@@ -108,7 +121,9 @@ def write_image_bag(
     messages: list[tuple[int, Any, bytes]] = []
     with Writer(Path(path), version=9, storage_plugin=plugin) as writer:
         for k, (name, images) in enumerate(cams):
-            conn = writer.add_connection(f"{prefix}/{name}/image_raw", IMAGE, typestore=ts)
+            kind = COMPRESSED if compressed else IMAGE
+            suffix = "/compressed" if compressed else ""
+            conn = writer.add_connection(f"{prefix}/{name}/image_raw{suffix}", kind, typestore=ts)
             info_conn = (
                 writer.add_connection(f"{prefix}/{name}/camera_info", CAMERA_INFO, typestore=ts)
                 if calibration is not None
@@ -120,7 +135,13 @@ def write_image_bag(
                     messages.append(
                         (int(stamp), info_conn, encode(_info_msg(int(stamp), name, info), CAMERA_INFO))
                     )
-                messages.append((int(stamp), conn, encode(_image_msg(int(stamp), name, image), IMAGE)))
-        for stamp, conn, payload in messages:  # stable: per stamp, left before right, info first
+                msg = (
+                    _compressed_msg(int(stamp), name, image, compressed)
+                    if compressed
+                    else _image_msg(int(stamp), name, image)
+                )
+                messages.append((int(stamp), conn, encode(msg, kind)))
+        messages.sort(key=lambda item: item[0])  # stable: per stamp, left before right, info first
+        for stamp, conn, payload in messages:
             writer.write(conn, stamp, payload)
     return Path(path)

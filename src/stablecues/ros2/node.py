@@ -58,6 +58,8 @@ log = logging.getLogger(__name__)
 
 #: frames of a stereo pair waiting for their other half, at most (the oldest go first)
 MAX_PENDING = 64
+#: poses a pose topic's reader holds until the receiver takes them
+POSE_HISTORY = 200
 
 
 def beside_camera_info(image_topic: str) -> str:
@@ -347,16 +349,19 @@ class LoopClosureNode:
             subs.append((c.right, c.image_type, c.input_qos, self._on_right))
         for topic in c.info_topics():
             if topic is not None:
-                subs.append((topic, CAMERA_INFO, "reliable", self._info_handler(topic)))
+                subs.append((topic, CAMERA_INFO, c.input_qos, self._info_handler(topic)))
         if c.depth is not None:
             subs.append((c.depth, IMAGE, c.input_qos, self._on_depth))
         if c.pose is not None:
             subs.append(
-                (c.pose, POSE_STAMPED if c.pose_type == "pose" else ODOMETRY, "reliable", self._on_pose)
+                (c.pose, POSE_STAMPED if c.pose_type == "pose" else ODOMETRY, c.input_qos, self._on_pose)
             )
         for topic, msgtype, profile, handler in subs:
-            # CameraInfo is latched by many drivers (transient local); a volatile reader takes both
-            reader = dds.reader(did, topic, msgtype, profile, description)
+            # every input at the camera's QoS: a best-effort reader matches best-effort and reliable
+            # publishers alike (a reliable one would miss a driver's best-effort CameraInfo); poses
+            # come in bursts faster than images, and each is wanted
+            depth = POSE_HISTORY if msgtype in (POSE_STAMPED, ODOMETRY) else None
+            reader = dds.reader(did, topic, msgtype, profile, description, depth)
             self._readers.append((reader, self._decoder(topic, msgtype, handler)))
         prefix = c.prefix.rstrip("/")
         self._writers[LOOP_CLOSURE] = dds.writer(did, f"{prefix}/loop_closure", LOOP_CLOSURE)
