@@ -16,7 +16,7 @@ from stablecues.ros2.node import NodeConfig, _Image, _Pending, _Slot, beside_cam
 
 
 def _item(k: int) -> _Pending:
-    return _Pending(_Image(k, "cam", None, 0.0))
+    return _Pending(_Image(k, b"", "", "", 0.0))
 
 
 def test_the_slot_keeps_the_newest_frame_and_counts_the_rest() -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import struct
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ __all__ = [
     "decode",
     "encode",
     "fields_of",
+    "peek_stamp",
     "stamp_ns",
     "time_msg",
     "typestore",
@@ -120,6 +122,21 @@ def decode(payload: bytes | memoryview, msgtype: str, where: str = "") -> Any:
     except Exception as exc:  # rosbags raises SerdeError, struct.error, IndexError ... on bad bytes
         label = f"{where}: " if where else ""
         raise MessageError(f"{label}{len(payload)} bytes are not a valid {msgtype} ({reason(exc)})") from None
+
+
+def peek_stamp(payload: bytes | memoryview, msgtype: str, where: str = "") -> int:
+    """The header stamp (ns) of a message whose first field is a ``std_msgs/Header``, read from its
+    first 12 bytes without decoding the rest (an image's pixels are decoded only if it is used).
+
+    Raises:
+        MessageError: fewer than 12 bytes, or not plain CDR.
+    """
+    head = bytes(payload[:12])
+    if len(head) < 12 or head[:2] not in (b"\x00\x00", b"\x00\x01"):
+        label = f"{where}: " if where else ""
+        raise MessageError(f"{label}{len(payload)} bytes are not a valid {msgtype} (no CDR header and stamp)")
+    sec, nanosec = struct.unpack_from("<iI" if head[1] else ">iI", head, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 def stamp_ns(stamp: Any) -> int:

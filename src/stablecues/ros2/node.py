@@ -44,6 +44,7 @@ from .messages import (
     loop_closure_dict,
     loop_closure_msg,
     loop_markers_msg,
+    peek_stamp,
     stamp_ns,
     string_msg,
 )
@@ -164,6 +165,7 @@ class NodeSummary:
         cpu_s: CPU seconds of the process (user + system), all threads.
         wall_s: seconds the node ran.
         decide_ms: median milliseconds from a frame's arrival to its decision's publication.
+        detect_ms: median milliseconds the detector took per frame (its ``total`` stage).
     """
 
     received: int = 0
@@ -178,6 +180,7 @@ class NodeSummary:
     cpu_s: float = 0.0
     wall_s: float = 0.0
     decide_ms: float = float("nan")
+    detect_ms: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -194,12 +197,21 @@ class NodeSummary:
 
 @dataclass
 class _Image:
-    """A received image message, decoded from CDR (pixels not yet)."""
+    """A received image message: its stamp, and its CDR decoded only when the frame is used."""
 
     stamp_ns: int
-    frame_id: str
-    msg: Any
+    payload: bytes
+    msgtype: str
+    topic: str
     arrived: float  # time.monotonic() at arrival
+
+    def message(self) -> Any:
+        """The decoded message.
+
+        Raises:
+            MessageError: a payload that is not a valid message of its type.
+        """
+        return decode(self.payload, self.msgtype, self.topic)
 
 
 @dataclass
@@ -209,6 +221,7 @@ class _Pending:
     left: _Image
     right: _Image | None = None
     depth: _Image | None = None
+    frame_id: str = ""  # the left image's, once decoded
 
 
 @dataclass
@@ -329,6 +342,7 @@ class LoopClosureNode:
             for t in (detector.db.column("timestamp") if len(detector.db) else [])
         ]
         self._decide_ms: list[float] = []
+        self._detect_ms: list[float] = []
         self._readers: list[tuple[Any, Callable[[Any], None]]] = []
         self._writers: dict[str, Any] = {}
         self._stop = threading.Event()
@@ -371,16 +385,22 @@ class LoopClosureNode:
         self._types = {t: dds.topic_type(t) for t in self._writers}
 
     def _decoder(self, topic: str, msgtype: str, handler: Callable[[Any], None]) -> Callable[[Any], None]:
-        def decode_sample(sample: Any) -> None:
+        """A reader's sample handler: images go on as their stamp and bytes (decoded when used),
+        other messages decoded; a malformed one is logged in one line and skipped."""
+        image = msgtype in (IMAGE, COMPRESSED)
+
+        def on_sample(sample: Any) -> None:
             try:
-                msg = decode(sample.payload, msgtype, topic)
+                if image:
+                    stamp = peek_stamp(sample.payload, msgtype, topic)
+                    handler(_Image(stamp, sample.payload, msgtype, topic, time.monotonic()))
+                else:
+                    handler(decode(sample.payload, msgtype, topic))
             except MessageError as exc:
                 self.summary.malformed += 1
                 log.warning("skipped a malformed message: %s", exc)
-                return
-            handler(msg)
 
-        return decode_sample
+        return on_sample
 
     def _receive(self) -> None:
         """The receiver thread: take every sample of every reader as it arrives."""
@@ -408,12 +428,8 @@ class LoopClosureNode:
     # ------------------------------------------------------------------------------------------
     # what arrives
 
-    def _image(self, msg: Any) -> _Image:
-        return _Image(stamp_ns(msg.header.stamp), str(msg.header.frame_id), msg, time.monotonic())
-
-    def _on_left(self, msg: Any) -> None:
+    def _on_left(self, img: _Image) -> None:
         self.summary.received += 1
-        img = self._image(msg)
         if self.config.right is None:
             self._deliver(_Pending(img))
             return
@@ -424,8 +440,7 @@ class LoopClosureNode:
                 return
         self._deliver(_Pending(img, right))
 
-    def _on_right(self, msg: Any) -> None:
-        img = self._image(msg)
+    def _on_right(self, img: _Image) -> None:
         with self._lock:
             left = self._match(self._pending_left, img.stamp_ns)
             if left is None:
@@ -453,8 +468,7 @@ class LoopClosureNode:
             del pending[min(pending)]
             self.summary.unpaired += 1
 
-    def _on_depth(self, msg: Any) -> None:
-        img = self._image(msg)
+    def _on_depth(self, img: _Image) -> None:
         with self._lock:
             self._depths[img.stamp_ns] = img
             while len(self._depths) > MAX_PENDING:
@@ -560,6 +574,7 @@ class LoopClosureNode:
             self.summary.wall_s = time.monotonic() - start
             if self._decide_ms:
                 self.summary.decide_ms = float(np.median(self._decide_ms))
+                self.summary.detect_ms = float(np.median(self._detect_ms))
         return self.summary
 
     def stop(self) -> None:
@@ -586,14 +601,16 @@ class LoopClosureNode:
         from ..types import Frame
 
         read = image_from_compressed if self.config.image_type == COMPRESSED else image_from_raw
-        image = read(item.left.msg, f"{self.config.image} message at {item.left.stamp_ns} ns")
+        left = item.left.message()
+        item.frame_id = str(left.header.frame_id)
+        image = read(left, f"{self.config.image} message at {item.left.stamp_ns} ns")
         right = None
         if item.right is not None and self.config.right is not None:
-            right = read(item.right.msg, f"{self.config.right} message at {item.right.stamp_ns} ns")
+            right = read(item.right.message(), f"{self.config.right} message at {item.right.stamp_ns} ns")
         depth = None
         if item.depth is not None and self.config.depth is not None:
             depth = depth_from_image(
-                item.depth.msg, f"{self.config.depth} message at {item.depth.stamp_ns} ns"
+                item.depth.message(), f"{self.config.depth} message at {item.depth.stamp_ns} ns"
             )
         label = self.config.image.strip("/")
         return Frame(
@@ -628,6 +645,7 @@ class LoopClosureNode:
         self.summary.loops += int(decision.accepted)
         out = self._publish(item, decision)
         self._decide_ms.append((time.monotonic() - item.left.arrived) * 1e3)
+        self._detect_ms.append(float(decision.timings.get("total", float("nan"))))
         return out
 
     def _publish(self, item: _Pending, d: LoopDecision) -> dict[str, Any]:
@@ -635,7 +653,7 @@ class LoopClosureNode:
         cand_stamp = self._stamps[d.candidate] if 0 <= d.candidate < len(self._stamps) else 0
         msg = loop_closure_msg(
             stamp=item.left.stamp_ns,
-            frame_id=item.left.frame_id,
+            frame_id=item.frame_id,
             query_index=d.frame_index,
             candidate_index=d.candidate_frame,
             candidate_stamp=cand_stamp,
