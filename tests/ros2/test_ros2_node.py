@@ -338,3 +338,22 @@ def test_loop_edges_for_rviz_with_a_pose_topic(
     points = np.array([[p.x, p.y, p.z] for p in marker.points])
     want = np.array([positions[k] for q, c in loops for k in (q, c)])
     np.testing.assert_allclose(points, want)
+
+
+def test_the_shell_example_replays_a_bag_to_the_node(synbag: Path, tmp_path: Path) -> None:
+    """examples/ros2_replay.sh: publisher, node and subscriber by hand, on the loopback interface."""
+    env = dds_env(next(_DOMAINS))
+    del env["CYCLONEDDS_URI"]  # the script sets the loopback configuration itself
+    env.update(
+        PRESET="fast",
+        NODE_ARGS="--set query.exclude_recent=4",
+        PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}",
+    )
+    script = Path(__file__).resolve().parents[2] / "examples" / "ros2_replay.sh"
+    out = subprocess.run(
+        ["bash", str(script), str(synbag)], env=env, capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
+    assert out.returncode == 0, out.stderr
+    loops = [json.loads(ln) for ln in out.stdout.splitlines() if ln.startswith("{")]
+    assert loops and all(d["accepted"] for d in loops)
+    assert "frames decided" in out.stderr and "Traceback" not in out.stderr

@@ -59,6 +59,8 @@ log = logging.getLogger(__name__)
 
 #: frames of a stereo pair waiting for their other half, at most (the oldest go first)
 MAX_PENDING = 64
+#: seconds frames may wait for the CameraInfo before the node warns
+CAMERA_INFO_PATIENCE = 5.0
 #: poses a pose topic's reader holds until the receiver takes them
 POSE_HISTORY = 200
 
@@ -347,6 +349,7 @@ class LoopClosureNode:
         self._writers: dict[str, Any] = {}
         self._stop = threading.Event()
         self._waiting_said = False
+        self._waiting_since: float | None = None
         self._open_endpoints()
 
     # ------------------------------------------------------------------------------------------
@@ -582,14 +585,27 @@ class LoopClosureNode:
         self._stop.set()
 
     def _say_waiting(self) -> None:
-        if not self._waiting_said and self.summary.received:
-            topics = [t for t in self.config.info_topics() if t is not None]
+        """Say, once, that frames wait for the CameraInfo: at once in the log's detail, and as a
+        warning when it has not come 5 s after the first frame (a camera publishing none needs
+        ``--camera-info none`` or ``--calib``)."""
+        if self.summary.received and self._waiting_since is None:
+            self._waiting_since = time.monotonic()
+            log.info("waiting for CameraInfo on %s before deciding", " and ".join(self._info_names()))
+        if (
+            not self._waiting_said
+            and self._waiting_since is not None
+            and time.monotonic() - self._waiting_since > CAMERA_INFO_PATIENCE
+        ):
             log.warning(
-                "waiting for CameraInfo on %s before deciding (frames meanwhile are kept as the "
-                "skip policy says)",
-                " and ".join(topics),
+                "no CameraInfo on %s yet, %g s after the first frame: frames wait (kept as the "
+                "skip policy says); give --camera-info none or --calib FILE for a camera without one",
+                " and ".join(self._info_names()),
+                CAMERA_INFO_PATIENCE,
             )
             self._waiting_said = True
+
+    def _info_names(self) -> list[str]:
+        return [t for t in self.config.info_topics() if t is not None]
 
     def _frame(self, item: _Pending, index: int) -> Any:
         """The detector's Frame of a pending item.
