@@ -189,10 +189,13 @@ def test_compiled_matching_agrees_with_numpy_on_ties_and_lone_candidates(seed: i
     q, c = _features(qd), _features(cd)
     qv, cv = FeatureVector(qn, 2), FeatureVector(cn, 2)
     for ratio, ceiling in ((0.8, 64), (1.0, 256), (0.6, 40)):
-        _assert_same_matches(
-            match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, engine="numpy"),
-            match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, engine="compiled"),
-        )
+        for cross in (False, True):
+            _assert_same_matches(
+                match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, cross_check=cross,
+                               engine="numpy"),
+                match_features(q, c, qv, cv, ratio=ratio, max_distance=ceiling, cross_check=cross,
+                               engine="compiled"),
+            )
 
 
 @needs_numba
@@ -208,10 +211,13 @@ def test_compiled_matching_agrees_with_numpy_on_real_frames() -> None:
     for i in range(len(feats)):
         for j in (i + 1, i + 4):
             if j < len(feats):
-                a = match_features(feats[i], feats[j], fvecs[i], fvecs[j], engine="numpy")
-                b = match_features(feats[i], feats[j], fvecs[i], fvecs[j], engine="compiled")
-                _assert_same_matches(a, b)
-                total += len(a)
+                for cross in (False, True):
+                    a = match_features(feats[i], feats[j], fvecs[i], fvecs[j], cross_check=cross,
+                                       engine="numpy")
+                    b = match_features(feats[i], feats[j], fvecs[i], fvecs[j], cross_check=cross,
+                                       engine="compiled")
+                    _assert_same_matches(a, b)
+                    total += len(a)
     assert total > 200  # real matches were compared, not empty sets
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from ..detection import DetectorConfig
     from ..features import ExtractorConfig
     from ..posetruth import LoopRule
     from ..vocabulary import Vocabulary
@@ -74,20 +75,38 @@ def add_vocabulary_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vocab", type=Path, metavar="FILE",
                         help="vocabulary file: the own binary format (.scv, as `stablecues vocab train` "
                              "writes) or DBoW2/ORB-SLAM text (e.g. ORBvoc.txt); its descriptors must be "
-                             f"the features' (default: the shipped {DEFAULT_VOCABULARY})")
+                             f"the features' (default: the shipped {DEFAULT_VOCABULARY}); or 'incremental': "
+                             "words learned from the map's own frames, no training set (the same as "
+                             "--set vocabulary=incremental; kept beside a map file as MAP.words)")
+
+
+def incremental_chosen(args: argparse.Namespace) -> bool:
+    """Whether ``--vocab incremental`` was given (not a file of that name: a path is a file)."""
+    return args.vocab is not None and str(args.vocab) == "incremental" and not Path(args.vocab).is_file()
 
 
 def vocabulary_from_args(args: argparse.Namespace) -> Vocabulary | None:
-    """The vocabulary ``--vocab`` names, or None for the shipped one.
+    """The vocabulary ``--vocab`` names, or None for the shipped one or an incremental one
+    (``--vocab incremental``: the detector makes it from its configuration, see
+    :func:`config_with_vocabulary`).
 
     Raises:
         VocabularyError: a missing, truncated or corrupt file.
     """
-    if args.vocab is None:
+    if args.vocab is None or incremental_chosen(args):
         return None
     from ..vocabulary import load_vocabulary
 
     return load_vocabulary(args.vocab)
+
+
+def config_with_vocabulary(config: DetectorConfig, args: argparse.Namespace) -> DetectorConfig:
+    """``config`` with ``vocabulary = "incremental"`` when ``--vocab incremental`` was given."""
+    if not incremental_chosen(args):
+        return config
+    import dataclasses
+
+    return dataclasses.replace(config, vocabulary="incremental")
 
 
 def add_progress_option(parser: argparse.ArgumentParser) -> None:

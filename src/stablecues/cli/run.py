@@ -16,6 +16,7 @@ from .options import (
     add_progress_option,
     add_rosbag_options,
     add_vocabulary_option,
+    config_with_vocabulary,
     is_rosbag,
     presets_epilog,
     rosbag_options,
@@ -95,6 +96,13 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
+def _vocabulary_meta(args: argparse.Namespace, vocabulary: Any, kind: str) -> dict[str, str]:
+    """What the run's meta records of its vocabulary (nothing for the shipped one)."""
+    if vocabulary is not None:
+        return {"vocabulary": str(args.vocab), "vocabulary_fingerprint": vocabulary.info().fingerprint}
+    return {"vocabulary": "incremental"} if kind == "incremental" else {}
+
+
 def run(args: argparse.Namespace) -> int:
     from ..datasets import open_dataset
     from ..detection import preset
@@ -106,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         check_output(args.rerun, "Rerun recording")
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one")
-    config = preset(args.preset, parse_overrides(args.set))
+    config = config_with_vocabulary(preset(args.preset, parse_overrides(args.set)), args)
     vocabulary = vocabulary_from_args(args)
     bag = rosbag_options(args) if is_rosbag(args) else {}
     if args.calib is not None:  # read now: a bad file is refused before the run folder is made
@@ -119,8 +127,7 @@ def run(args: argparse.Namespace) -> int:
     described = dataset.describe() if hasattr(dataset, "describe") else {}
     meta = {**described, "dataset": str(args.dataset), "format": getattr(dataset, "format", args.format),
             "ground_truth": None if gt is None else str(gt), "overrides": args.set}
-    if vocabulary is not None:
-        meta.update(vocabulary=str(args.vocab), vocabulary_fingerprint=vocabulary.info().fingerprint)
+    meta.update(_vocabulary_meta(args, vocabulary, config.vocabulary))
     with ExitStack() as stack:
         observers: list[Any] = []
         segmenter = None

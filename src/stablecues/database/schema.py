@@ -24,6 +24,7 @@ from typing import Any
 
 from ..errors import DatabaseError
 from ..vocabulary import Vocabulary
+from ..vocabulary.incremental import IncrementalVocabulary
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = ("1", "2")
@@ -122,7 +123,7 @@ class Schema:
         return "removed" if "removed" in self.columns else "0"
 
 
-def vocabulary_meta(voc: Vocabulary) -> dict[str, str]:
+def vocabulary_meta(voc: Vocabulary | IncrementalVocabulary) -> dict[str, str]:
     return {
         "vocabulary_fingerprint": voc.fingerprint,
         "vocabulary": json.dumps({"k": voc.k, "L": voc.levels, "words": voc.n_words,
@@ -131,7 +132,7 @@ def vocabulary_meta(voc: Vocabulary) -> dict[str, str]:
     }
 
 
-def prepare(sql: Sql, voc: Vocabulary) -> Schema:
+def prepare(sql: Sql, voc: Vocabulary | IncrementalVocabulary) -> Schema:
     """Create a new file's tables, check an existing file's metadata against the vocabulary,
     and migrate a format-1 file (writers only). A file holding other tables is refused
     without being written to."""
@@ -163,7 +164,7 @@ def prepare(sql: Sql, voc: Vocabulary) -> Schema:
     return Schema(version, _columns(sql), uuid, have.get("index"))
 
 
-def _create(sql: Sql, voc: Vocabulary) -> Schema:
+def _create(sql: Sql, voc: Vocabulary | IncrementalVocabulary) -> Schema:
     new_id = uuid_mod.uuid4().hex
     try:
         with sql.write() as conn:
@@ -178,13 +179,18 @@ def _create(sql: Sql, voc: Vocabulary) -> Schema:
     return Schema(FORMAT_VERSION, _columns(sql), bytes.fromhex(new_id), None)
 
 
-def check_vocabulary(have: dict[str, Any], voc: Vocabulary, where: str) -> None:
+def check_vocabulary(have: dict[str, Any], voc: Vocabulary | IncrementalVocabulary, where: str) -> None:
     """Refuse a file of another format or made with another vocabulary."""
     if str(have.get("format_version")) not in READABLE_VERSIONS:
         raise DatabaseError(f"{where}: database format {str(have.get('format_version'))[:20]}, "
                             f"expected one of {', '.join(READABLE_VERSIONS)}")
     if have.get("vocabulary_fingerprint") != voc.fingerprint:
         theirs = str(have.get("vocabulary_fingerprint", "?"))[:12]
+        made_incremental = '"k": 0,' in str(have.get("vocabulary", ""))
+        if made_incremental != isinstance(voc, IncrementalVocabulary):
+            how = ("an incremental vocabulary (open it with --vocab incremental, vocabulary: incremental)"
+                   if made_incremental else "a trained vocabulary, not an incremental one")
+            raise DatabaseError(f"{where}: made with {how}")
         raise DatabaseError(
             f"{where}: made with vocabulary {theirs}..., not with this vocabulary "
             f"{voc.fingerprint[:12]}... (open it with the vocabulary it was built with)"

@@ -51,9 +51,10 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from ..errors import DatabaseError, InputError, check_array
+from ..errors import ConfigError, DatabaseError, InputError, VocabularyError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
+from ..vocabulary.incremental import IncrementalVocabulary, words_path
 from .entrylog import EMPTY_BOW, EMPTY_PAYLOAD, INSERT_ENTRY, EntryWriter, Row, log_path, replay, row_values
 from .files import (
     IndexFiles,
@@ -214,7 +215,7 @@ class Database:
 
     def __init__(
         self,
-        vocabulary: Vocabulary,
+        vocabulary: Vocabulary | IncrementalVocabulary,
         path: str | Path | None = None,
         config: DatabaseConfig | None = None,
         readonly: bool = False,
@@ -237,6 +238,7 @@ class Database:
         self._entries: EntryWriter | None = None  # a file's write-behind (the writer's)
         self._files: IndexFiles | None = None
         self._index: InvertedIndex | None = None
+        self._incremental: IncrementalVocabulary | None = None
         if self.path is not None and not readonly:
             _refuse_a_new_map_over_old_files(self.path)
         self._sql = Sql(self._connect(), self._where(), readonly)
@@ -253,6 +255,7 @@ class Database:
                                         store=self._files, background=background,
                                         chunk=self.config.merge_chunk)
             self._load_index()
+            self._open_words()
             latest = self._index.sessions()
             self.session = int(latest[-1]) if session is None and latest.size else int(session or 0)
             self._check_session(self.session)
@@ -463,6 +466,9 @@ class Database:
 
     def close(self) -> None:
         """Stop the index maintenance, close the file and give up the writer lock."""
+        if self._incremental is not None and self._index is not None:
+            with contextlib.suppress(DatabaseError):  # reported by the save itself; entries are safe
+                self._save_words(final=True)
         index, self._index = self._index, None
         if index is not None:
             index.close()
@@ -487,6 +493,80 @@ class Database:
         if self._writer is not None:
             self._writer.release()
             self._writer = None
+        if self._incremental is not None:
+            self._incremental.release(self)
+
+    # ------------------------------------------------------------------ an incremental vocabulary's words
+    def _open_words(self) -> None:
+        """Bind an incremental vocabulary to this map, read its words back (``MAP.words``) and
+        learn again the entries added after they were saved (a writer killed in between)."""
+        voc = self.vocabulary
+        if not isinstance(voc, IncrementalVocabulary):
+            return
+        voc.bind(self)
+        self._incremental = voc
+        n = len(self)
+        if self.path is None or self._schema.uuid is None:
+            if voc.images != n:
+                raise ConfigError(f"the incremental vocabulary has learned {voc.images} images, the map "
+                                  f"holds {n}: give a new map a new vocabulary")
+            return
+        wp = words_path(self.path)
+        try:
+            if wp.exists():
+                voc.restore(wp, self._schema.uuid)
+            elif n and not voc.images:
+                log.warning("%s: missing; learning the words again from the map's %d entries", wp, n)
+            elif n and voc.images:
+                raise DatabaseError(f"{wp}: missing (the words of the {n} entries of {self.path.name})")
+            elif voc.images:
+                raise ConfigError(f"the incremental vocabulary has learned {voc.images} images, the new map "
+                                  f"{self.path.name} none: give a new map a new vocabulary")
+        except VocabularyError as exc:
+            raise DatabaseError(str(exc)) from None
+        if voc.images > n:  # saved after entries a power cut took (entries not synced): learn all again
+            log.warning("%s: learned %d images, the map holds %d: learning the map's entries again", wp,
+                        voc.images, n)
+            voc.forget()
+        for eid in range(voc.images, n):  # added after the last save: learn them again, in order
+            d = self._stored_of(eid)
+            if d is None:
+                raise DatabaseError(f"{self._where()}: entry {eid} keeps no descriptors, the incremental "
+                                    f"vocabulary cannot learn it again ({wp} is behind)")
+            voc.replay(d)
+        if not self.readonly and voc.images > 0 and voc.due():
+            self._save_words()
+
+    def _stored_of(self, eid: int) -> np.ndarray | None:
+        """Entry ``eid``'s descriptors as stored, or None (removed, or kept without them)."""
+        alive = self.index.alive()
+        if alive is not None and not alive[eid]:
+            return None
+        what = f"{self._where()}: entry {eid}"
+        return _stored_descriptors(unpack_arrays(self._row(eid, "payload")[0], what), what)
+
+    def _save_words(self, final: bool = False) -> None:
+        voc = self._incremental
+        if (voc is None or self.readonly or self.path is None or self._schema.uuid is None
+                or voc.images != len(self) or not (final or voc.due())):
+            return
+        if final and not voc.due() and words_path(self.path).exists() and voc.images == 0:
+            return
+        try:
+            voc.save(words_path(self.path), self._schema.uuid)
+        except OSError as exc:
+            log.error("%s: cannot save the incremental vocabulary's words (%s); they are learned again "
+                      "from the entries at the next open", words_path(self.path), exc)
+            raise DatabaseError(f"{words_path(self.path)}: cannot write ({exc})") from None
+
+    def stored_form(self, descriptors: np.ndarray) -> np.ndarray:
+        """``descriptors`` as an entry of this map gives them back (float ones through the
+        int8 storage): what an incremental vocabulary learns from, so that learning them again
+        after a reopen makes the same words."""
+        if self.config.descriptor_storage == "int8" and descriptors.dtype == np.float32:
+            q, scale = _quantised(descriptors)
+            return q.astype(np.float32) * scale[0]
+        return descriptors
 
     def __del__(self) -> None:
         if sys.is_finalizing():  # its threads cannot run any more; the OS releases the rest
@@ -556,6 +636,9 @@ class Database:
         n = len(features)
         if len(fvec) != n:
             raise InputError(f"feature vector has {len(fvec)} nodes for {n} features")
+        if self._incremental is not None and self._incremental.images != len(self) + 1:
+            raise InputError(f"the incremental vocabulary has learned {self._incremental.images} images for "
+                             f"entry {len(self)}: call its learn() once per entry, just before add()")
         if bow.words.size and (bow.words[0] < 0 or bow.words[-1] >= self.vocabulary.n_words):
             raise InputError(f"BoW word ids outside this vocabulary's 0..{self.vocabulary.n_words - 1}")
         if fvec.levels_up != self.vocabulary.levels_up:
@@ -597,6 +680,8 @@ class Database:
             if self._held is not None and held is not None:
                 self._held[eid] = held
             index.add(bow.words, weights, sess)
+            if self._incremental is not None and self._incremental.due():
+                self._save_words()
         return eid
 
     def _payload(
@@ -661,6 +746,7 @@ class Database:
         with self._add_lock:
             self._writable()
             self._drain()
+            self._save_words(final=True)  # the entries removed could not be learned again
             try:
                 with self._sql.write() as conn:
                     rows = conn.execute(f"SELECT id FROM entries WHERE removed = 0 AND {where}",
@@ -741,6 +827,7 @@ class Database:
                 self._writable()
             self.index.flush()
             self._drain()
+            self._save_words(final=True)
 
     # ------------------------------------------------------------------ reading
     def query(

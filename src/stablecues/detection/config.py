@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -206,6 +207,13 @@ class DetectorConfig:
             certainties gates the weighting (``weighting.domain``) and the mask
             (``masking.min_frame_certainty``), so one unsure frame of a street drive stays in
             and one sure frame of a corridor stays out. 1: every frame alone.
+        vocabulary: where the words come from: "trained" (the shipped vocabulary of the
+            extractor, or the one given to the detector) or "incremental" (words learned from
+            the map's own descriptors as frames are added, no training set:
+            :mod:`stablecues.vocabulary.incremental`; saved beside a map file as ``MAP.words``).
+        incremental_threshold: the incremental vocabulary's merge distance (Hamming bits for
+            binary descriptors, Euclidean distance for float ones); None: its default for the
+            descriptors' kind.
     """
 
     features: ExtractorConfig = field(
@@ -223,8 +231,15 @@ class DetectorConfig:
     confidence: Literal["inliers", "sequence", "bow"] = "inliers"
     min_confidence: float = 0.0
     domain_window: int = 30
+    vocabulary: Literal["trained", "incremental"] = "trained"
+    incremental_threshold: float | None = None
 
     def __post_init__(self) -> None:
+        if self.vocabulary not in ("trained", "incremental"):
+            raise ConfigError(f"vocabulary: expected 'trained' or 'incremental', got {self.vocabulary!r}")
+        t = self.incremental_threshold
+        if t is not None and not (isinstance(t, int | float) and math.isfinite(t) and t >= 0):
+            raise ConfigError(f"incremental_threshold: expected a finite number >= 0 or None, got {t!r}")
         if self.domain_window < 1:
             raise ConfigError(f"domain_window: expected >= 1 frames, got {self.domain_window}")
         if self.confidence not in ("inliers", "sequence", "bow"):

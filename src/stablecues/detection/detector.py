@@ -39,6 +39,7 @@ from ..types import BowVector, FeaturesLike, Frame
 from ..verification.result import Verification
 from ..verification.verifier import Verifier, View
 from ..vocabulary import Scoring, Vocabulary, default_vocabulary, score
+from ..vocabulary.incremental import IncrementalVocabulary
 from .config import DetectorConfig
 from .decision import Checked, Island, LoopDecision, Status
 from .prepare import FramePreparer, PreparedFrame, Segmenter, as_calibration
@@ -249,14 +250,15 @@ class LoopDetector:
     def __init__(
         self,
         config: DetectorConfig | None = None,
-        vocabulary: Vocabulary | None = None,
+        vocabulary: Vocabulary | IncrementalVocabulary | None = None,
         database: str | Path | None = None,
         calibration: Calibration | str | Path | None = None,
         segmenter: Segmenter | None = None,
     ) -> None:
         calibration = as_calibration(calibration)  # a bad path fails before the database opens
         self.config = config or DetectorConfig()
-        self.vocabulary = vocabulary or default_vocabulary(self.config.features.name)
+        self.vocabulary: Vocabulary | IncrementalVocabulary = (
+            vocabulary or self._vocabulary_of(self.config))
         if self.vocabulary.scoring in (Scoring.KL, Scoring.DOT_PRODUCT):
             raise ConfigError("the loop detector needs a similarity scoring in [0, 1] (L1, L2, "
                               "chi-square or Bhattacharyya), not KL or dot product")
@@ -265,6 +267,17 @@ class LoopDetector:
         self._vlad = VladVote.of(self.config, self.vocabulary.descriptor_kind)
         self.last_similarity: np.ndarray | None = None
         self._restore_state()
+
+    @staticmethod
+    def _vocabulary_of(config: DetectorConfig) -> Vocabulary | IncrementalVocabulary:
+        """The shipped vocabulary of the configuration's extractor, or a new incremental one
+        for its descriptors (``config.vocabulary``)."""
+        if config.vocabulary == "incremental":
+            from ..features import make_extractor
+
+            kind = make_extractor(config.features).descriptor_kind
+            return IncrementalVocabulary(kind, threshold=config.incremental_threshold)
+        return default_vocabulary(config.features.name)
 
     @property
     def calibration(self) -> Calibration | None:
@@ -663,7 +676,10 @@ class LoopDetector:
         arrays = {} if prep.weights is None else {"weights": prep.weights}
         if vlad is not None:
             arrays["vlad"] = vlad.astype(np.float16)
-        self.db.add(prep.bow, prep.fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
+        bow, fvec = prep.bow, prep.fvec
+        if isinstance(self.vocabulary, IncrementalVocabulary):  # its words grow with the map
+            bow, fvec = self.vocabulary.learn(self.db.stored_form(prep.features.descriptors), prep.weights)
+        self.db.add(bow, fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
                     pose=frame.pose, meta=meta, arrays=arrays or None)
         if self._vlad is not None and vlad is not None:
             self._vlad.append(vlad, entry=len(self.db) - 1)
@@ -671,7 +687,7 @@ class LoopDetector:
         self._entry_frames.append(int(frame.index))
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a
         # resumed run normalises scores exactly as an uninterrupted one
-        self._prev_bow = BowVector(prep.bow.words, prep.bow.weights.astype(np.float32).astype(np.float64))
+        self._prev_bow = BowVector(bow.words, bow.weights.astype(np.float32).astype(np.float64))
         prep.timings["add"] = (time.perf_counter() - t) * 1e3
 
     def _query(self, bow: BowVector, frame: Frame, entry: int, vlad: np.ndarray | None = None) -> _Query:

@@ -48,6 +48,7 @@ from ..types import BowVector, Features, FeaturesLike, FeatureVector, Frame, fra
 from ..verification.matching import match_features
 from ..verification.verifier import Verifier, View
 from ..vocabulary import Vocabulary
+from ..vocabulary.incremental import IncrementalVocabulary
 from .config import DetectorConfig
 
 __all__ = ["FramePreparer", "PreparedFrame", "Segmenter", "as_calibration"]
@@ -156,7 +157,7 @@ class FramePreparer:
     def __init__(
         self,
         config: DetectorConfig,
-        vocabulary: Vocabulary,
+        vocabulary: Vocabulary | IncrementalVocabulary,
         calibration: Calibration | str | Path | None = None,
         segmenter: Segmenter | None = None,
         *,

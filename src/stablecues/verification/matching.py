@@ -176,10 +176,10 @@ def _ragged_pairs(query_nodes: np.ndarray, cand_nodes: np.ndarray) -> tuple[np.n
     return qi, ci
 
 
-def _binary_kernels(a: np.ndarray, b: np.ndarray, engine: str, cross_check: bool) -> Any:
-    """The compiled kernels when they can match these descriptors (256-bit binary, no
-    cross-check, the engine allowing it), else None."""
-    if cross_check or engine == "numpy":
+def _binary_kernels(a: np.ndarray, b: np.ndarray, engine: str) -> Any:
+    """The compiled kernels when they can match these descriptors (256-bit binary, the engine
+    allowing it), else None."""
+    if engine == "numpy":
         return None
     kind = DescriptorKind.of(a, "query descriptors")
     if kind.kind == "float" or kind.size != 32 or resolve(engine) != "compiled":
@@ -281,11 +281,16 @@ def _best_two_indexed(
             f"feature vectors: expected {n} and {m} nodes like the features, "
             f"got {len(query_fvec)} and {len(candidate_fvec)}"
         )
-    kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine, cross_check)
+    kernels = _binary_kernels(query.descriptors, candidate.descriptors, engine)
     if kernels is not None:
         best_j, best, second = _best_two_compiled(
             kernels, query.descriptors, candidate.descriptors, query_fvec, candidate_fvec)
-        return best_j, best, second, best_j >= 0, None
+        back = None
+        if cross_check:  # each candidate feature's nearest query feature under its node: the same
+            # kernel the other way round (ties to the lower query index, as the NumPy path's key)
+            back = _best_two_compiled(kernels, candidate.descriptors, query.descriptors, candidate_fvec,
+                                      query_fvec)[0]
+        return best_j, best, second, best_j >= 0, back
     qi, ci = _ragged_pairs(query_fvec.nodes, candidate_fvec.nodes)
     dist = scaled_distances(query.descriptors, candidate.descriptors, qi, ci)
     best_pos, best, second = _best_two_grouped(qi, dist, n)

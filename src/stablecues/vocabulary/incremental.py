@@ -1,0 +1,545 @@
+"""A vocabulary that learns its words from the map it serves: no training set needed.
+
+iBoW-LCD's idea (Garcia-Fidalgo and Ortiz, 2018) behind the interface of the trained
+vocabulary (:class:`~stablecues.vocabulary.Vocabulary`): ``transform`` gives an image's BoW
+vector, the map's inverse index and scoring are the same. The words are the map's own
+descriptors:
+
+* **Made and merged by distance.** When an image is added (:meth:`IncrementalVocabulary.learn`),
+  each descriptor joins the nearest word within the merge threshold (Hamming bits for binary
+  descriptors, Euclidean distance for float ones); a descriptor with none becomes a new word
+  (a *leader*: a word is the descriptor that made it, so a word never moves and a stored BoW
+  vector keeps its meaning). Descriptors are taken in order, so two of one image can share a word.
+* **Found through an index kept as words arrive.** Locality-sensitive hash tables
+  (:mod:`._incremental`): a new word is linked into one bucket per table, O(tables), never a
+  rebuild; a descriptor's candidates are the words sharing a bucket with it.
+* **Purged when they do not come back.** A word seen in a single image and not seen again for
+  ``purge_after`` images is dropped (iBoW-LCD keeps the words that recur; a word made by noise
+  or a passing object never does). Its id is not reused; the old images' postings of it stay
+  inert.
+* **Weights kept current.** A word's IDF is ``log(1 + N / n_w)`` (N images learned, n_w of them
+  with the word), computed at each transform: queries weigh words by the map as it is now;
+  a stored vector keeps the weights of the moment it was added, as in iBoW-LCD.
+
+Word ids run from 0 up to :attr:`IncrementalVocabulary.n_words`, a fixed id space (the map's
+index is sized by it); once it is used up, descriptors that match no word get none.
+
+The words live beside the map (``MAP.words``, :meth:`save`/:meth:`restore`): written whole
+(atomically) on close and every ``save_every`` images, and brought up to date on reopen by
+learning again the images added after it from the map's own entries, so that a writer killed
+between two saves loses no acknowledged image and the words are the same as an uninterrupted
+run's (learning is deterministic).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import struct
+import threading
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType, SimpleNamespace
+from typing import Any, Literal
+
+import numpy as np
+
+from ..errors import ConfigError, InputError, VocabularyError
+from ..types import BowVector, DescriptorKind, FeatureVector
+from ..vocabulary.scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
+from .descriptors import as_words, check_descriptors
+
+__all__ = ["INCREMENTAL", "IncrementalInfo", "IncrementalVocabulary", "words_path"]
+
+#: the name that selects it (``--vocab incremental``, ``vocabulary: incremental``)
+INCREMENTAL = "incremental"
+
+_MAGIC = b"SCVW"
+_VERSION = 1
+_HEADER = struct.Struct("<4sHBBIHHdQQQQQ16sI")  # .. body CRC; the header's own CRC follows
+_HEADER_SIZE = 128
+_NONE = -1
+
+
+@dataclass(frozen=True)
+class IncrementalInfo:
+    """What an incremental vocabulary holds now."""
+
+    kind: str
+    images: int
+    words_made: int
+    words_live: int
+    id_space: int
+    threshold: float
+    tables: int
+    bits: int
+    purge_after: int
+    fingerprint: str
+
+
+# Settings measured on real frames (bench/bench_incremental.py, "index" section): per kind, the
+# merge threshold, the hash tables and their bits.
+DEFAULTS: dict[str, dict[str, float]] = {
+    "binary": {"threshold": 40, "tables": 16, "bits": 12},
+    "float": {"threshold": 0.75, "tables": 16, "bits": 10},
+}
+
+
+def words_path(map_path: str | Path) -> Path:
+    """Where the words of the map at ``map_path`` live: ``MAP.words`` beside it."""
+    p = Path(map_path)
+    return p.with_name(p.name + ".words")
+
+
+class IncrementalVocabulary:
+    """Words made from the map's own descriptors as images are added (see the module).
+
+    Args:
+        kind: the descriptors' kind (``DescriptorKind("binary", 32)`` for ORB,
+            ``DescriptorKind("float", 64)`` for XFeat).
+        threshold: merge distance: Hamming bits (binary) or Euclidean distance (float); a
+            descriptor joins the nearest word at most this far.
+        tables: hash tables of the word index (more find more true neighbours, cost more).
+        bits: bits of each table's key (more make smaller buckets and fewer candidates).
+        id_space: word ids available (the map's index is sized by it).
+        purge_after: images after which a word seen only once is dropped (0: never).
+        save_every: images between two saves of the words file of a map.
+        seed: of the hash functions (part of the identity: a map reopens with the same).
+
+    Raises:
+        ConfigError: a setting out of range.
+    """
+
+    k = 0
+    levels = 0
+    levels_up = 0
+    weighting = Weighting.TF_IDF
+    scoring = Scoring.L1
+    engine = "compiled"
+
+    def __init__(
+        self,
+        kind: DescriptorKind,
+        threshold: float | None = None,
+        tables: int | None = None,
+        bits: int | None = None,
+        id_space: int = 1 << 22,
+        purge_after: int = 100,
+        save_every: int = 1000,
+        seed: int = 0,
+    ) -> None:
+        self.kind = kind
+        d = DEFAULTS[kind.kind]
+        self.threshold = float(d["threshold"] if threshold is None else threshold)
+        self.tables = int(d["tables"] if tables is None else tables)
+        self.bits = int(d["bits"] if bits is None else bits)
+        self.id_space, self.purge_after = int(id_space), int(purge_after)
+        self.save_every, self.seed = int(save_every), int(seed)
+        width = 8 * kind.size if kind.kind == "binary" else None
+        if not (math.isfinite(self.threshold) and self.threshold >= 0):
+            raise ConfigError(f"incremental vocabulary: threshold {threshold!r} must be a finite number >= 0")
+        if not 1 <= self.tables <= 64 or not 1 <= self.bits <= 24 or (width and self.bits > width):
+            raise ConfigError(f"incremental vocabulary: {self.tables} tables of {self.bits} bits: "
+                              "expected 1-64 tables of 1-24 bits")
+        if not 1 <= self.id_space <= (1 << 31) - 1 or self.purge_after < 0 or self.save_every < 1:
+            raise ConfigError("incremental vocabulary: id_space must be 1..2^31-1, purge_after >= 0, "
+                              "save_every >= 1")
+        rng = np.random.default_rng(self.seed)
+        self._float = kind.kind == "float"
+        if self._float:
+            self._planes = rng.standard_normal((kind.size, self.tables * self.bits))
+        else:
+            self._positions = np.stack([rng.choice(width or 8, self.bits, replace=False)
+                                        for _ in range(self.tables)])
+        self._pow2 = (1 << np.arange(self.bits, dtype=np.int64))
+        self._lock = threading.RLock()
+        self._owner: object | None = None
+        self._reset()
+
+    def _reset(self) -> None:
+        self._made = 0  # word ids used so far
+        self._images = 0  # images learned
+        self._alloc = 0
+        width = self.kind.size if self._float else as_words(np.zeros((1, self.kind.size), np.uint8)).shape[1]
+        self._dtype = np.float32 if self._float else np.uint64
+        self._words = np.zeros((0, width), self._dtype)
+        self._df = np.zeros(0, np.int32)
+        self._last = np.zeros(0, np.int32)
+        self._alive = np.zeros(0, np.uint8)
+        self._pool = _kernel_module().pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
+        self._dead_linked = 0
+        self._since_save = 0
+
+    # ------------------------------------------------------------------ identity
+    @property
+    def n_words(self) -> int:
+        """Size of the word id space (what the map's index is sized by)."""
+        return self.id_space
+
+    @property
+    def descriptor_kind(self) -> DescriptorKind:
+        return self.kind
+
+    @property
+    def is_float(self) -> bool:
+        return self._float
+
+    @property
+    def fingerprint(self) -> str:
+        """SHA-256 of what decides the words (kind, threshold, index, id space, purge, seed):
+        a map records it and reopens only with the same."""
+        text = (f"incremental {_VERSION} {self.kind.kind} {self.kind.size} {self.threshold!r} {self.tables} "
+                f"{self.bits} {self.id_space} {self.purge_after} {self.seed}")
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    @property
+    def images(self) -> int:
+        """Images learned so far."""
+        return self._images
+
+    @property
+    def words_made(self) -> int:
+        return self._made
+
+    @property
+    def words_live(self) -> int:
+        return int(self._alive[: self._made].sum())
+
+    def info(self) -> IncrementalInfo:
+        return IncrementalInfo(str(self.kind), self._images, self._made, self.words_live, self.id_space,
+                               self.threshold, self.tables, self.bits, self.purge_after, self.fingerprint)
+
+    def __repr__(self) -> str:
+        return (f"IncrementalVocabulary({self.kind}, threshold={self.threshold:g}, images={self._images}, "
+                f"words={self.words_live} live of {self._made})")
+
+    def warm_up(self) -> str:
+        """Load (or compile, the first time on a machine) the kernels now."""
+        _kernels()
+        return self.engine
+
+    def bind(self, owner: object) -> None:
+        """Tie the vocabulary to the one map it learns from.
+
+        Raises:
+            ConfigError: it already serves another map.
+        """
+        with self._lock:
+            if self._owner is not None and self._owner is not owner:
+                raise ConfigError("an incremental vocabulary learns from one map: make one per map")
+            self._owner = owner
+
+    def release(self, owner: object) -> None:
+        with self._lock:
+            if self._owner is owner:
+                self._owner = None
+
+    # ------------------------------------------------------------------ words
+    def _keys(self, d: np.ndarray) -> np.ndarray:
+        """(N, tables) int64 bucket of each descriptor in each table."""
+        if self._float:
+            signs = (np.asarray(d, np.float64) @ self._planes) > 0
+        else:
+            bits = np.unpackbits(np.ascontiguousarray(d, np.uint8), axis=1, bitorder="little")
+            signs = bits[:, self._positions.reshape(-1)].astype(bool)
+        return signs.reshape(d.shape[0], self.tables, self.bits).astype(np.int64) @ self._pow2
+
+    def _room(self, more: int) -> None:
+        """Room for ``more`` new words: their rows, and the page pool's worst case (each of
+        them opening a page of the largest size in every table)."""
+        need = self._made + more
+        if need > self._alloc:
+            alloc = max(need, 2 * self._alloc, 1024)
+            self._words = _grow(self._words, (alloc, self._words.shape[1]))
+            self._df = _grow(self._df, (alloc,))
+            self._last = _grow(self._last, (alloc,))
+            self._alive = _grow(self._alive, (alloc,))
+            self._alloc = alloc
+        pl = self._pool
+        pages, slots = (int(v) for v in pl["state"])
+        mod = _kernel_module()
+        want_pages, want_slots = pages + self.tables * more, slots + self.tables * more * mod.MAX_PAGE
+        if want_pages > pl["pg_next"].shape[0]:
+            size = max(want_pages, 2 * pl["pg_next"].shape[0])
+            for name, fill in (("pg_next", mod.NONE), ("pg_start", 0), ("pg_cap", 0), ("pg_fill", 0)):
+                pl[name] = _grow(pl[name], (size,), fill)
+        if want_slots > pl["slot_ids"].shape[0]:
+            size = max(want_slots, 2 * pl["slot_ids"].shape[0])
+            pl["slot_ids"] = _grow(pl["slot_ids"], (size,))
+            pl["slot_desc"] = _grow(pl["slot_desc"], (size, pl["slot_desc"].shape[1]))
+
+    def _assign(self, d: np.ndarray, create: bool) -> np.ndarray:
+        n = d.shape[0]
+        out = np.full(n, _NONE, np.int32)
+        if n == 0 or (not create and self._made == 0):
+            return out
+        if create:
+            self._room(n)
+        k = _kernels()
+        keys = self._keys(d)
+        pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
+        if self._float:
+            q = np.ascontiguousarray(d, np.float32)
+            self._made = k.assign_float(keys, q, *pl, self._words, self._alive, self._made,
+                                        self.threshold ** 2, create, self.id_space, out)
+        else:
+            self._made = k.assign_binary(keys, as_words(d), *pl, self._words, self._alive, self._made,
+                                         int(self.threshold), create, self.id_space, out)
+        return out
+
+    def _vector(self, words: np.ndarray, fw: np.ndarray | None, images: int) -> BowVector:
+        ok = words >= 0
+        if fw is not None:
+            ok &= fw > 0
+        if not ok.any():
+            return BowVector.empty()
+        uniq, inverse = np.unique(words[ok], return_inverse=True)
+        tf = np.bincount(inverse, weights=None if fw is None else fw[ok], minlength=uniq.size)
+        idf = np.log1p(images / np.maximum(self._df[uniq], 1))
+        return BowVector(uniq.astype(np.int32), normalise(tf * idf, self.scoring))
+
+    def _check(self, descriptors: np.ndarray, weights: np.ndarray | None) -> np.ndarray | None:
+        check_descriptors(descriptors, kind=self.kind)
+        if weights is None:
+            return None
+        w = np.asarray(weights, np.float64)
+        if w.shape != (descriptors.shape[0],) or not np.isfinite(w).all() or (w < 0).any():
+            raise InputError(f"weights: expected ({descriptors.shape[0]},) finite values >= 0, "
+                             f"got shape {w.shape}")
+        return w
+
+    def transform(self, descriptors: np.ndarray, levels_up: int | None = None,
+                  weights: np.ndarray | None = None) -> tuple[BowVector, FeatureVector]:
+        """BoW vector of an image against the words as they are (nothing learned): each
+        descriptor's word, TF-IDF with the current IDF, L1-normalised. The direct index puts
+        every feature in one group (node 0): verification matches all features of a pair.
+
+        Raises:
+            InputError: descriptors of another kind, or bad weights.
+        """
+        fw = self._check(descriptors, weights)
+        with self._lock:
+            words = self._assign(descriptors, create=False)
+            bow = self._vector(words, fw, max(self._images, 1))
+        return bow, self._direct(words)
+
+    def learn(self, descriptors: np.ndarray, weights: np.ndarray | None = None
+              ) -> tuple[BowVector, FeatureVector]:
+        """Add one image's descriptors to the words (a new word for each that matches none) and
+        give its BoW vector with the new words in it: what the map stores for the image.
+
+        Raises:
+            InputError: descriptors of another kind, or bad weights.
+        """
+        fw = self._check(descriptors, weights)
+        with self._lock:
+            words = self._learn(descriptors)
+            bow = self._vector(words, fw, self._images)
+        return bow, self._direct(words)
+
+    @staticmethod
+    def _direct(words: np.ndarray) -> FeatureVector:
+        """The direct index: every feature under one node, so verification compares all the
+        features of a pair (features grouped by their word kept 10 % fewer loops of
+        train_drives at 100 % precision: a revisit's feature and its twin share a word less
+        often than a trained tree's coarse node; ``bench_incremental.py``)."""
+        return FeatureVector(np.zeros(words.shape[0], np.int32), 0)
+
+    def _learn(self, descriptors: np.ndarray) -> np.ndarray:
+        words = self._assign(descriptors, create=True)
+        seen = np.unique(words[words >= 0])
+        self._df[seen] += 1
+        self._last[seen] = self._images
+        self._images += 1
+        self._since_save += 1
+        if self.purge_after and self._images % 16 == 0:
+            self._purge()
+        return words
+
+    def _purge(self) -> None:
+        """Drop the words seen in one image only and not since ``purge_after`` images; relink
+        the buckets once the dropped words still in them outnumber half the live ones."""
+        n = self._made
+        old = self._last[:n] < self._images - self.purge_after
+        gone = (self._alive[:n] == 1) & (self._df[:n] == 1) & old
+        dropped = int(gone.sum())
+        if not dropped:
+            return
+        self._alive[:n][gone] = 0
+        self._dead_linked += dropped
+        if self._dead_linked > max(self.words_live // 2, 4096):
+            self._relink()
+
+    def _relink(self) -> None:
+        """Rebuild the word index from the live words (ascending ids), in a new page pool."""
+        mod = _kernel_module()
+        ids = np.flatnonzero(self._alive[: self._made]).astype(np.int32)
+        live = int(ids.size)
+        # a bucket of m words takes at most m pages and 2m + FIRST_PAGE slots
+        self._pool = mod.pool(self.tables, self.bits, self.tables * live + 1024,
+                              self.tables * (2 * live + mod.FIRST_PAGE) + 4096, self._words.shape[1],
+                              self._dtype)
+        k = _kernels()
+        pl = [self._pool[a] for a in mod.POOL_ARGS]
+        for lo in range(0, live, 65536):  # keys in chunks: a bounded temporary
+            part = ids[lo: lo + 65536]
+            rows = np.ascontiguousarray(self._words[part])
+            k.link(self._keys(self._descriptors_of(part)), part, rows, *pl)
+        self._dead_linked = 0
+
+    def _descriptors_of(self, ids: np.ndarray) -> np.ndarray:
+        if self._float:
+            return self._words[ids]
+        return np.ascontiguousarray(self._words[ids]).view(np.uint8)[:, : self.kind.size]
+
+    # ------------------------------------------------------------------ files
+    def due(self) -> bool:
+        """Whether ``save_every`` images were learned since the last save."""
+        return self._since_save >= self.save_every
+
+    def save(self, path: str | Path, map_id: bytes) -> None:
+        """Write the words to ``path`` atomically (a temporary file, fsynced, renamed over it).
+
+        Args:
+            map_id: the 16-byte id of the map they belong to (recorded and checked on restore).
+        """
+        p = Path(path)
+        with self._lock:
+            n = self._made
+            body = [np.ascontiguousarray(self._words[:n]).tobytes(), self._df[:n].astype("<i4").tobytes(),
+                    self._last[:n].astype("<i4").tobytes(), self._alive[:n].tobytes()]
+            crc = 0
+            for part in body:
+                crc = zlib.crc32(part, crc)
+            fields = _HEADER.pack(_MAGIC, _VERSION, int(self._float), 0, self.kind.size, self.tables,
+                                  self.bits, self.threshold, self.id_space, self.purge_after, self.seed,
+                                  n, self._images, map_id, crc)
+            header = fields + struct.pack("<I", zlib.crc32(fields))
+            header += bytes(_HEADER_SIZE - len(header))
+            tmp = p.with_name(p.name + ".tmp")
+            with open(tmp, "wb") as f:
+                f.write(header)
+                for part in body:
+                    f.write(part)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, p)
+            _fsync_dir(p.parent)
+            self._since_save = 0
+
+    def restore(self, path: str | Path, map_id: bytes) -> None:
+        """Read the words saved at ``path`` for the map ``map_id`` (replacing what is here).
+
+        Raises:
+            VocabularyError: one line naming the file: not a words file, truncated, corrupt,
+                made with other settings or for another map.
+        """
+        p = Path(path)
+        where = str(p)
+        try:
+            size = p.stat().st_size
+            with open(p, "rb") as f:
+                head = f.read(_HEADER_SIZE)
+                if len(head) < _HEADER_SIZE or head[:4] != _MAGIC:
+                    raise VocabularyError(f"{where}: not a stablecues words file (expected {_MAGIC!r} "
+                                          f"and a {_HEADER_SIZE}-byte header)")
+                fields = head[: _HEADER.size]
+                (_, version, is_float, _, dim, tables, bits, threshold, id_space, purge_after, seed, n,
+                 images, owner, crc) = _HEADER.unpack(fields)
+                if struct.unpack_from("<I", head, _HEADER.size)[0] != zlib.crc32(fields):
+                    raise VocabularyError(f"{where}: the header's checksum does not match (corrupt file)")
+                if version != _VERSION:
+                    raise VocabularyError(f"{where}: words file version {version}, expected {_VERSION}")
+                mine = (int(self._float), self.kind.size, self.tables, self.bits, self.threshold,
+                        self.id_space, self.purge_after, self.seed)
+                if (is_float, dim, tables, bits, threshold, id_space, purge_after, seed) != mine:
+                    raise VocabularyError(f"{where}: made by an incremental vocabulary with other settings "
+                                          f"({'float' if is_float else 'binary'} {dim}, "
+                                          f"threshold {threshold:g}, "
+                                          f"{tables}x{bits} bits, purge {purge_after}); this one has "
+                                          f"{self.kind}, threshold {self.threshold:g}, "
+                                          f"{self.tables}x{self.bits} bits, purge {self.purge_after}")
+                if owner != map_id:
+                    raise VocabularyError(f"{where}: the words of another map (id {owner.hex()[:12]}..., "
+                                          f"this map is {map_id.hex()[:12]}...)")
+                width = self._words.shape[1]
+                item = 4 if self._float else 8
+                if n > id_space:
+                    raise VocabularyError(f"{where}: {n} words in an id space of {id_space}")
+                expected = _HEADER_SIZE + n * (width * item + 9)
+                if size != expected:
+                    raise VocabularyError(f"{where}: {size} bytes, expected {expected} for {n} words "
+                                          "(truncated or corrupt)")
+                raw = f.read()
+        except OSError as exc:
+            raise VocabularyError(f"{where}: cannot read the words file ({exc.strerror or exc})") from None
+        if zlib.crc32(raw) != crc:
+            raise VocabularyError(f"{where}: the words' checksum does not match (corrupt file)")
+        with self._lock:
+            self._reset()
+            self._room(n)
+            a = n * width * item
+            words = np.frombuffer(raw, np.float32 if self._float else np.uint64, n * width, 0)
+            self._words[:n] = words.reshape(n, width)
+            self._df[:n] = np.frombuffer(raw, "<i4", n, a)
+            self._last[:n] = np.frombuffer(raw, "<i4", n, a + 4 * n)
+            alive = np.frombuffer(raw, np.uint8, n, a + 8 * n)
+            if alive.size and int(alive.max()) > 1:
+                raise VocabularyError(f"{where}: live flags other than 0 and 1 (corrupt file)")
+            self._alive[:n] = alive
+            self._made, self._images = n, int(images)
+            self._relink()
+
+    def forget(self) -> None:
+        """Drop every word and image learned (to learn a map again from its first entry)."""
+        with self._lock:
+            self._reset()
+
+    def replay(self, descriptors: np.ndarray) -> None:
+        """Learn one stored image again (bringing restored words up to date)."""
+        with self._lock:
+            self._learn(descriptors)
+            self._since_save = self.save_every  # what was replayed is saved at the next chance
+
+
+def _grow(a: np.ndarray, shape: tuple[int, ...], fill: int = 0) -> np.ndarray:
+    out = np.full(shape, fill, a.dtype) if fill else np.zeros(shape, a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _kernels() -> SimpleNamespace:
+    from . import _incremental
+
+    return _incremental.kernels()
+
+
+def _kernel_module() -> ModuleType:
+    from . import _incremental
+
+    return _incremental
+
+
+def describe(kind: Literal["binary", "float"]) -> dict[str, Any]:
+    """The default settings for descriptors of ``kind`` (for ``vocab info incremental``)."""
+    return dict(DEFAULTS[kind])
+
+
+# names of the scoring and weighting, for the same table as a trained vocabulary's info
+SCORING_NAME = scoring_name(Scoring.L1)
+WEIGHTING_NAME = weighting_name(Weighting.TF_IDF)
