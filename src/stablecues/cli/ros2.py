@@ -70,6 +70,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--wait-timeout", type=float, default=10.0, metavar="S", help="... for at most S seconds"
     )
     play.add_argument(
+        "--exact-types",
+        action="store_true",
+        help="announce the types' full descriptions (for a node run with --exact-types)",
+    )
+    play.add_argument(
         "--published",
         type=Path,
         metavar="FILE",
@@ -85,8 +90,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     echo.add_argument("--count", type=int, help="exit after this many decisions")
     echo.add_argument("--timeout", type=float, metavar="S", help="exit after S seconds without a decision")
     echo.add_argument("--accepted", action="store_true", help="print accepted loops only")
-    echo.add_argument("--raw", type=Path, metavar="FILE",
-                      help="also write each payload as received (CDR, hex) to this file, one a line")
+    echo.add_argument(
+        "--raw",
+        type=Path,
+        metavar="FILE",
+        help="also write each payload as received (CDR, hex) to this file, one a line",
+    )
     _common(echo)
     return p
 
@@ -295,6 +304,7 @@ def _play(args: argparse.Namespace) -> int:
         start=args.start,
         count=args.frames,
         stop=stop.is_set,
+        description="exact" if args.exact_types else "opaque",
     )
     counts = ", ".join(f"{t} {n}" for t, n in sorted(result.messages.items()))
     print(f"stablecues ros2 play: published {counts} in {result.seconds:.1f} s", file=sys.stderr, flush=True)
@@ -324,8 +334,15 @@ def _echo(args: argparse.Namespace) -> int:
             raw_file.flush()
 
     try:
-        n = listen(show, topic=args.topic, domain=did, count=args.count, timeout=args.timeout,
-                   stop=stop.is_set, raw=keep)
+        n = listen(
+            show,
+            topic=args.topic,
+            domain=did,
+            count=args.count,
+            timeout=args.timeout,
+            stop=stop.is_set,
+            raw=keep,
+        )
     finally:
         if raw_file is not None:
             raw_file.close()

@@ -425,8 +425,15 @@ class LoopClosureNode:
                     if not samples:
                         break
                     for sample in samples:
-                        if getattr(sample, "payload", None) is not None:
+                        if getattr(sample, "payload", None) is None:
+                            continue  # a writer gone (an invalid sample carries no message)
+                        try:
                             handle(sample)
+                        except Exception as exc:  # never let one message stop the receiver
+                            self.summary.malformed += 1
+                            log.warning(
+                                "skipped a message that could not be used (%s: %s)", type(exc).__name__, exc
+                            )
 
     # ------------------------------------------------------------------------------------------
     # what arrives

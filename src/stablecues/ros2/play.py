@@ -76,6 +76,7 @@ def play(
     count: int | None = None,
     linger: float = 0.5,
     stop: Callable[[], bool] = lambda: False,
+    description: dds.Description = "opaque",
 ) -> PlaySummary:
     """Publish a ROS 2 bag's camera topics at their recorded rate.
 
@@ -93,6 +94,8 @@ def play(
         count: play this many messages of the first image topic (None: all).
         linger: seconds to stay after the last message, so reliable readers get it.
         stop: polled between messages; True ends the replay.
+        description: the types' description announced (see :mod:`.dds`): "opaque", as the node's
+            subscriptions announce it, or "exact" for a node run with ``--exact-types``.
 
     Raises:
         DatasetError: not a readable ROS 2 bag (a ROS 1 bag is refused: its messages are not CDR),
@@ -112,10 +115,10 @@ def play(
         chosen = _bag_topics(reader, path, topics)
         first_image = min((t for t, typ in chosen.items() if typ != CAMERA_INFO), default=None)
         writers = {
-            t: dds.writer(domain, t, typ, image_qos if typ != CAMERA_INFO else "reliable", "opaque")
+            t: dds.writer(domain, t, typ, image_qos if typ != CAMERA_INFO else "reliable", description)
             for t, typ in chosen.items()
         }
-        types = {t: dds.topic_type(typ, "opaque") for t, typ in chosen.items()}
+        types = {t: dds.topic_type(typ, description) for t, typ in chosen.items()}
         if wait_for_subscribers and not dds.wait_for_readers(
             list(writers.values()), wait_timeout, wait_for_subscribers
         ):
