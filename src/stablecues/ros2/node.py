@@ -407,7 +407,7 @@ class LoopClosureNode:
 
     def _receive(self) -> None:
         """The receiver thread: take every sample of every reader as it arrives."""
-        cdds = dds.cyclonedds()
+        dds.cyclonedds()  # the install hint, should the imports below fail
         from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
         from cyclonedds.util import duration
 
@@ -416,7 +416,6 @@ class LoopClosureNode:
         conditions = [ReadCondition(reader, mask) for reader, _ in self._readers]
         for cond in conditions:
             waitset.attach(cond)
-        del cdds
         while not self._stop.is_set():
             waitset.wait(duration(milliseconds=100))
             for reader, handle in self._readers:
