@@ -104,3 +104,25 @@ def test_the_shipped_configuration_keeps_dds_on_the_loopback_interface() -> None
     assert root.findtext(".//c:General/c:AllowMulticast", namespaces=ns) == "false"
     assert [p.get("address") for p in root.findall(".//c:Discovery/c:Peers/c:Peer", ns)] == ["127.0.0.1"]
     assert root.findtext(".//c:Discovery/c:ParticipantIndex", namespaces=ns) == "auto"
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["play", "missing_bag"], "missing_bag: ROS bag not found"),
+        (["play", "old.bag"], "a ROS 1 bag; replay a ROS 2 bag"),
+        (["play", "missing_bag", "--rate", "0"], "--rate: expected a speed factor > 0"),
+        (["--image", "cam/image"], "expected an absolute ROS topic name"),
+        (["--map", "/nonexistent/dir/m.sqlite"], "its folder does not exist"),
+        (["--domain", "999"], "the domain id: expected a whole number in 0..232, got '999'"),
+    ],
+)
+def test_command_line_mistakes_are_one_line(
+    args: list[str], said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("cyclonedds", reason="the ros2 extra (cyclonedds) is not installed")
+    from stablecues.cli.main import main
+
+    assert main(["ros2", *args]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stablecues ros2: error: ") and said in err[0], err

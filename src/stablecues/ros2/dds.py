@@ -95,7 +95,8 @@ def domain_id(value: str | None = None) -> int:
     except ValueError:
         did = -1
     if not 0 <= did <= 232:
-        raise ConfigError(f"ROS_DOMAIN_ID: expected a whole number in 0..232, got {raw!r}")
+        where = "the domain id" if value is not None else "ROS_DOMAIN_ID"
+        raise ConfigError(f"{where}: expected a whole number in 0..232, got {raw!r}")
     return did
 
 

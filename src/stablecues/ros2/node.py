@@ -39,6 +39,7 @@ from .messages import (
     POSE_STAMPED,
     STRING,
     MessageError,
+    dds_topic_name,
     decode,
     encode,
     loop_closure_dict,
@@ -122,6 +123,17 @@ class NodeConfig:
             raise ConfigError(f"input QoS: expected 'sensor' or 'reliable', got {self.input_qos!r}")
         if self.pose_type not in ("pose", "odometry"):
             raise ConfigError(f"pose type: expected 'pose' or 'odometry', got {self.pose_type!r}")
+        for topic in (
+            self.image,
+            self.right,
+            self.camera_info,
+            self.right_camera_info,
+            self.depth,
+            self.pose,
+            self.prefix.rstrip("/") + "/loop_closure",
+        ):
+            if topic is not None and topic != "auto":
+                dds_topic_name(topic)  # an absolute ROS name, or InputError in one line
         if not self.max_stereo_difference >= 0:
             raise ConfigError(
                 f"max stereo difference: expected seconds >= 0, got {self.max_stereo_difference}"
