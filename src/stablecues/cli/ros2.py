@@ -220,9 +220,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _node(args: argparse.Namespace) -> int:
+    from ..detection import LoopDetector, preset
     from ..errors import ConfigError
     from ..ros2.dds import cyclonedds
-    from ..ros2.node import LoopClosureNode, NodeConfig, open_detector
+    from ..ros2.node import LoopClosureNode, NodeConfig
+    from .options import config_with_vocabulary
     from .run import parse_overrides
 
     cyclonedds()  # a missing extra is said before the detector loads
@@ -252,8 +254,9 @@ def _node(args: argparse.Namespace) -> int:
         calibration = load_calibration(args.calib)
         if args.camera_info == "auto":
             config = NodeConfig(**{**config.__dict__, "camera_info": None, "right_camera_info": None})
-    detector = open_detector(
-        args.preset, parse_overrides(args.set), args.map, vocabulary_from_args(args), calibration
+    detector_config = config_with_vocabulary(preset(args.preset, parse_overrides(args.set)), args)
+    detector = LoopDetector(
+        detector_config, vocabulary=vocabulary_from_args(args), database=args.map, calibration=calibration
     )
     stop = threading.Event()
     _on_signals(stop)

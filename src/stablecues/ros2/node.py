@@ -22,7 +22,6 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -726,18 +725,3 @@ class LoopClosureNode:
 def _cpu_s() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return float(usage.ru_utime + usage.ru_stime)
-
-
-def open_detector(
-    preset_name: str,
-    overrides: dict[str, Any],
-    map_path: Path | None,
-    vocabulary: Any = None,
-    calibration: Any = None,
-) -> LoopDetector:
-    """The node's detector: ``preset_name`` with ``overrides``, its map at ``map_path`` (reopened
-    and continued when it exists; in memory when None)."""
-    from ..detection import LoopDetector, preset
-
-    config = preset(preset_name, overrides)
-    return LoopDetector(config, vocabulary=vocabulary, database=map_path, calibration=calibration)
