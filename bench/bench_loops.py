@@ -260,7 +260,8 @@ def bench_camvid(names: list[str], network: bool) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------- small sets
-def bench_desk(names: list[str]) -> dict[str, Any]:
+def bench_desk(names: list[str], overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """desk_loop10 with each preset (``overrides`` on top of the set's own, e.g. a vocabulary)."""
     folder = SHARED / "desk_loop10"
     frames = [
         Frame(index=i, name=f"{i + 1}.png", timestamp=float(i), image=read_image(folder / f"{i + 1}.png"))
@@ -268,7 +269,7 @@ def bench_desk(names: list[str]) -> dict[str, Any]:
     ]
     out: dict[str, Any] = {}
     for name in names:
-        over = {"query": {"exclude_recent": 3, "temporal_k": 1}}
+        over = {"query": {"exclude_recent": 3, "temporal_k": 1}, **(overrides or {})}
         det = LoopDetector(preset(name, over))
         decisions = [det.process(f) for f in frames]
         loops = [(d.frame_index + 1, d.candidate_frame + 1) for d in decisions if d.accepted]
@@ -289,7 +290,8 @@ def bench_desk(names: list[str]) -> dict[str, Any]:
     return out
 
 
-def bench_euroc(names: list[str]) -> dict[str, Any]:
+def bench_euroc(names: list[str], overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The EuRoC loop pairs with each preset (``overrides`` on top, as for :func:`bench_desk`)."""
     from stablecues.geometry import load_euroc_stereo
 
     root = SHARED / "euroc" / "loop_pairs"
@@ -313,7 +315,7 @@ def bench_euroc(names: list[str]) -> dict[str, Any]:
     for name, (preset_name, extra) in variants.items():
         over: dict[str, Any] = {
             "query": {"exclude_recent": 0, "temporal_k": 1, "use_nss": False, "alpha": 0.0},
-            "features": {"n_features": 2000}, **extra,
+            "features": {"n_features": 2000}, **extra, **(overrides or {}),
         }
         if uses_masking(preset_name):
             over["semantic_source"] = "network"

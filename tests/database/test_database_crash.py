@@ -18,7 +18,9 @@ import pytest
 import stablecues.database.store as store
 from stablecues.database import Database, InvertedIndex
 from stablecues.database.files import Manifest, index_dir
+from stablecues.types import DescriptorKind
 from stablecues.vocabulary import Vocabulary, save_vocabulary
+from stablecues.vocabulary.incremental import IncrementalVocabulary
 
 WRITER = textwrap.dedent(
     """
@@ -27,14 +29,25 @@ WRITER = textwrap.dedent(
     from dbkit import fake_features
     from stablecues.database import Database, DatabaseConfig
     from stablecues.vocabulary import load_vocabulary
-    voc = load_vocabulary({voc!r}, levels_up=2)
+    incremental = {incremental}
+    if incremental:  # words learned from the entries, saved every 7 (a kill lands between saves)
+        from stablecues.types import DescriptorKind
+        from stablecues.vocabulary.incremental import IncrementalVocabulary
+        voc = IncrementalVocabulary(DescriptorKind("binary", 32), save_every=7, purge_after=5)
+    else:
+        voc = load_vocabulary({voc!r}, levels_up=2)
     cfg = DatabaseConfig(tail_postings=250, merge_chunk=120, maintenance={mode!r})
     db = Database(voc, {db!r}, cfg)
     i = len(db)
     rng = np.random.default_rng(i)
+    pool = np.random.default_rng(99).integers(0, 256, (300, 32), dtype=np.uint8)
     while True:
-        d = rng.integers(0, 256, (100, 32), dtype=np.uint8)
-        bow, fvec = voc.transform(d)
+        if incremental:  # places seen again: pool rows with a few bits flipped
+            d = pool[rng.integers(0, 300, 100)] ^ (rng.random((100, 32)) < 0.01).astype(np.uint8)
+            bow, fvec = voc.learn(d)
+        else:
+            d = rng.integers(0, 256, (100, 32), dtype=np.uint8)
+            bow, fvec = voc.transform(d)
         db.add(bow, fvec, fake_features(d), meta={{"i": i}}, session=i // 50)
         print("A", i, flush=True)
         if {compact} and i % 17 == 16:
@@ -79,11 +92,35 @@ def check_consistent(db: Database, acked: int, removed: set[int]) -> None:
     assert db.check() == []
 
 
-def kill_rounds(voc: Vocabulary, tmp_path: Path, mode: str, compact: bool, rounds: int) -> int:
+def incremental_voc() -> IncrementalVocabulary:
+    """The writer's incremental vocabulary (same settings, nothing learned)."""
+    return IncrementalVocabulary(DescriptorKind("binary", 32), save_every=7, purge_after=5)
+
+
+def check_words(db: Database) -> None:
+    """The words a reopened map continues with == those learned again from its entries, in order."""
+    ref = incremental_voc()
+    for i in range(len(db)):
+        d = db._stored_of(i)
+        assert d is not None  # removed entries are saved in the words before they go
+        ref.replay(d)
+    got = db.vocabulary
+    assert isinstance(got, IncrementalVocabulary)
+    assert (got.images, got.words_made, got.words_live) == (ref.images, ref.words_made, ref.words_live)
+    n = ref.words_made
+    assert np.array_equal(got._words[:n], ref._words[:n]) and np.array_equal(got._df[:n], ref._df[:n])
+    assert np.array_equal(got._alive[:n], ref._alive[:n]) and np.array_equal(got._last[:n], ref._last[:n])
+
+
+def kill_rounds(voc: Vocabulary | None, tmp_path: Path, mode: str, compact: bool, rounds: int) -> int:
+    """``voc`` None: the writer learns an incremental vocabulary (no removals then: a removed
+    entry keeps no descriptors to learn again)."""
     voc_path, db_path = tmp_path / "v.scv", tmp_path / "db.sqlite"
-    save_vocabulary(voc, voc_path)
+    if voc is not None:
+        save_vocabulary(voc, voc_path)
     tests = str(Path(__file__).parents[1])
-    script = WRITER.format(tests=tests, voc=str(voc_path), db=str(db_path), mode=mode, compact=compact)
+    script = WRITER.format(tests=tests, voc=str(voc_path), db=str(db_path), mode=mode, compact=compact,
+                           incremental=voc is None)
     rng = np.random.default_rng(0)
     acked, removed, cut = 0, set(), 0
     for _ in range(rounds):
@@ -107,14 +144,22 @@ def kill_rounds(voc: Vocabulary, tmp_path: Path, mode: str, compact: bool, round
         proc.wait()
         assert lines == target, "writer did not run"
         cut += orphans(db_path) > 0
-        with Database(voc, db_path) as db:
+        with Database(voc if voc is not None else incremental_voc(), db_path) as db:
             check_consistent(db, acked, removed)
+            if voc is None:
+                check_words(db)
     return cut
 
 
 @pytest.mark.parametrize("mode", ["background", "inline"])
 def test_kills_during_adds_and_index_maintenance(mode: str, voc: Vocabulary, tmp_path: Path) -> None:
     kill_rounds(voc, tmp_path, mode, compact=False, rounds=5)
+
+
+def test_kills_while_an_incremental_vocabulary_learns(tmp_path: Path) -> None:
+    """A writer killed between two saves of its words: the reopened map learns the entries added
+    since again and continues with exactly the words an uninterrupted writer would have."""
+    kill_rounds(None, tmp_path, "background", compact=False, rounds=5)
 
 
 def test_kills_during_removal_and_compaction(voc: Vocabulary, tmp_path: Path) -> None:

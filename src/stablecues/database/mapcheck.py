@@ -17,8 +17,9 @@ import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import DatabaseError
+from ..errors import DatabaseError, VocabularyError
 from ..vocabulary import DEFAULT_VOCABULARIES, Vocabulary, default_vocabulary
+from ..vocabulary.incremental import IncrementalVocabulary, words_path
 from .store import Database
 
 __all__ = ["MapReport", "check_map", "map_vocabulary"]
@@ -73,13 +74,21 @@ def _recorded_fingerprint(path: Path) -> str:
     return row[0]
 
 
-def map_vocabulary(path: Path) -> tuple[Vocabulary, str]:
+def map_vocabulary(path: Path) -> tuple[Vocabulary | IncrementalVocabulary, str]:
     """The shipped vocabulary a map was made with (by the fingerprint it records).
 
     Raises:
         DatabaseError: not a map, or made with a vocabulary that is not shipped (give it).
     """
     recorded = _recorded_fingerprint(path)
+    words = words_path(path)
+    if words.is_file():  # an incremental vocabulary's map: its settings are in the words file
+        try:
+            inc = IncrementalVocabulary.of_words_file(words)
+        except VocabularyError as exc:
+            raise DatabaseError(str(exc)) from None
+        if inc.fingerprint == recorded:
+            return inc, "incremental"
     for name in DEFAULT_VOCABULARIES:
         voc = default_vocabulary(name)
         if voc.fingerprint == recorded:
@@ -97,8 +106,8 @@ class _Collect(logging.Handler):
         self.messages.append(record.getMessage())
 
 
-def check_map(path: str | Path, vocabulary: Vocabulary | None = None, *, repair: bool = False,
-              vocabulary_source: str = "given") -> MapReport:
+def check_map(path: str | Path, vocabulary: Vocabulary | IncrementalVocabulary | None = None, *,
+              repair: bool = False, vocabulary_source: str = "given") -> MapReport:
     """Check (and with ``repair`` salvage) a map file.
 
     Args:

@@ -512,18 +512,7 @@ class Database:
                                   f"holds {n}: give a new map a new vocabulary")
             return
         wp = words_path(self.path)
-        try:
-            if wp.exists():
-                voc.restore(wp, self._schema.uuid)
-            elif n and not voc.images:
-                log.warning("%s: missing; learning the words again from the map's %d entries", wp, n)
-            elif n and voc.images:
-                raise DatabaseError(f"{wp}: missing (the words of the {n} entries of {self.path.name})")
-            elif voc.images:
-                raise ConfigError(f"the incremental vocabulary has learned {voc.images} images, the new map "
-                                  f"{self.path.name} none: give a new map a new vocabulary")
-        except VocabularyError as exc:
-            raise DatabaseError(str(exc)) from None
+        self._read_words(voc, wp, n)
         if voc.images > n:  # saved after entries a power cut took (entries not synced): learn all again
             log.warning("%s: learned %d images, the map holds %d: learning the map's entries again", wp,
                         voc.images, n)
@@ -537,6 +526,20 @@ class Database:
         if not self.readonly and voc.images > 0 and voc.due():
             self._save_words()
 
+    def _read_words(self, voc: IncrementalVocabulary, wp: Path, n: int) -> None:
+        """The saved words into ``voc`` (a new map, or one whose words file is gone: none)."""
+        assert self._schema.uuid is not None
+        try:
+            if wp.exists():
+                voc.restore(wp, self._schema.uuid)
+            elif voc.images:
+                raise ConfigError(f"the incremental vocabulary has learned {voc.images} images, the map "
+                                  f"{self._where()} has no words: give a map a new vocabulary")
+            elif n:
+                log.warning("%s: missing; learning the words again from the map's %d entries", wp, n)
+        except VocabularyError as exc:
+            raise DatabaseError(str(exc)) from None
+
     def _stored_of(self, eid: int) -> np.ndarray | None:
         """Entry ``eid``'s descriptors as stored, or None (removed, or kept without them)."""
         alive = self.index.alive()
@@ -548,9 +551,7 @@ class Database:
     def _save_words(self, final: bool = False) -> None:
         voc = self._incremental
         if (voc is None or self.readonly or self.path is None or self._schema.uuid is None
-                or voc.images != len(self) or not (final or voc.due())):
-            return
-        if final and not voc.due() and words_path(self.path).exists() and voc.images == 0:
+                or voc.images != len(self) or not (voc.due() or (final and voc.unsaved))):
             return
         try:
             voc.save(words_path(self.path), self._schema.uuid)

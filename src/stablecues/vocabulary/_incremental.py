@@ -9,8 +9,7 @@ the two agree). Nothing here imports numba at module import.
 descriptor by some of its bits (binary) or by the signs of some projections (float). A bucket
 holds its words' ids *and a copy of their descriptors*, in pages (a page of 2 slots, then
 pages twice as large, up to :data:`MAX_PAGE`, newest first), so that scanning a bucket reads
-memory in order instead of jumping to each word (a miss to main memory per candidate made a
-descriptor's 60 candidates cost 3 ms per 1000 descriptors). A descriptor's candidates are the
+its descriptors in order rather than each word's row elsewhere. A descriptor's candidates are the
 words sharing a bucket with it in any table; its word is the nearest *live* one within the merge
 threshold, ties to the lower id, so the answer does not depend on the order of the buckets.
 
@@ -33,12 +32,9 @@ FIRST_PAGE = 2  # slots of a bucket's first page
 
 
 def popcount64(x: Any) -> Any:
-    """Set bits of one uint64 (SWAR, for the plain Python path; the compiled kernels use the
-    popcount instruction)."""
-    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+    """Set bits of one uint64 (the plain Python path; the compiled kernels use the popcount
+    instruction instead)."""
+    return int(x).bit_count()
 
 
 def put(t: int, key: int, wid: int, row: np.ndarray, head: np.ndarray, pg_next: np.ndarray,
@@ -66,19 +62,17 @@ def put(t: int, key: int, wid: int, row: np.ndarray, head: np.ndarray, pg_next: 
 
 def assign_binary(keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np.ndarray,
                   pg_start: np.ndarray, pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray,
-                  slot_desc: np.ndarray, state: np.ndarray, words: np.ndarray, alive: np.ndarray,
-                  n_words: int, threshold: int, create: bool, limit: int, out: np.ndarray) -> int:
+                  slot_desc: np.ndarray, state: np.ndarray, alive: np.ndarray, threshold: int,
+                  out: np.ndarray) -> None:
     """Each descriptor's word: the nearest live word within ``threshold`` bits among its
-    candidates (ties to the lower id), or, with ``create``, a new word made of it (while
-    ``n_words < limit``; -1 past it). Descriptors are taken in order, so a later one of the same
-    image can join a word an earlier one made. Returns the new number of words.
+    candidates (ties to the lower id), -1 when none.
 
     Args:
         keys: (N, T) int64 bucket of each descriptor in each table.
-        q: (N, W) uint64 descriptors; words: (capacity, W) uint64, room for N more.
+        q: (N, W) uint64 descriptors.
         head: (T, 2^bits) int32 newest page of each bucket; pg_*: the page pool; slot_ids,
-            slot_desc: its slots; state: (2,) int64 pages and slots used.
-        alive: (capacity,) uint8.
+            slot_desc: its slots; state: (2,) int64 pages and slots used (unchanged here).
+        alive: (capacity,) uint8 live words.
         out: (N,) int32 the answer.
     """
     n, w = q.shape
@@ -100,23 +94,13 @@ def assign_binary(keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np
                             best_d = d
                             best = c
                 p = pg_next[p]
-        if best == NONE and create and n_words < limit:
-            best = n_words
-            for j in range(w):
-                words[best, j] = q[i, j]
-            alive[best] = 1
-            for t in range(tables):
-                put(t, keys[i, t], best, q[i], head, pg_next, pg_start, pg_cap, pg_fill, slot_ids, slot_desc,
-                    state)
-            n_words += 1
         out[i] = best
-    return n_words
 
 
 def assign_float(keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np.ndarray,
                  pg_start: np.ndarray, pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray,
-                 slot_desc: np.ndarray, state: np.ndarray, words: np.ndarray, alive: np.ndarray,
-                 n_words: int, threshold: float, create: bool, limit: int, out: np.ndarray) -> int:
+                 slot_desc: np.ndarray, state: np.ndarray, alive: np.ndarray, threshold: float,
+                 out: np.ndarray) -> None:
     """:func:`assign_binary` for float descriptors: squared Euclidean distance summed in
     float64 in dimension order, ``threshold`` a squared distance."""
     n, dims = q.shape
@@ -139,17 +123,46 @@ def assign_float(keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np.
                             best_d = d
                             best = c
                 p = pg_next[p]
-        if best == NONE and create and n_words < limit:
-            best = n_words
-            for j in range(dims):
-                words[best, j] = q[i, j]
-            alive[best] = 1
-            for t in range(tables):
-                put(t, keys[i, t], best, q[i], head, pg_next, pg_start, pg_cap, pg_fill, slot_ids, slot_desc,
-                    state)
-            n_words += 1
         out[i] = best
+
+
+def grow(todo: np.ndarray, keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np.ndarray,
+         pg_start: np.ndarray, pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray,
+         slot_desc: np.ndarray, state: np.ndarray, words: np.ndarray, alive: np.ndarray, n_words: int,
+         limit: int, out: np.ndarray) -> int:
+    """The second step of learning an image: each descriptor of ``todo`` (ascending), which
+    joined no word, becomes a new word (while ``n_words < limit``; -1 past it), linked into the
+    index. Returns the new number of words."""
+    tables = keys.shape[1]
+    for r in range(todo.shape[0]):
+        i = todo[r]
+        if n_words >= limit:
+            out[i] = NONE
+            continue
+        wid = n_words
+        for j in range(q.shape[1]):
+            words[wid, j] = q[i, j]
+        alive[wid] = 1
+        for t in range(tables):
+            put(t, keys[i, t], wid, q[i], head, pg_next, pg_start, pg_cap, pg_fill, slot_ids, slot_desc,
+                state)
+        out[i] = wid
+        n_words += 1
     return n_words
+
+
+def keys_binary(q: np.ndarray, positions: np.ndarray, out: np.ndarray) -> None:
+    """Bucket of each descriptor in each table: bit ``b`` of table ``t``'s key is the
+    descriptor's bit ``positions[t, b]`` (bit k of a descriptor: bit k % 64 of its word k // 64)."""
+    n = q.shape[0]
+    tables, bits = positions.shape
+    for i in range(n):
+        for t in range(tables):
+            key = 0
+            for b in range(bits):
+                p = positions[t, b]
+                key |= int((q[i, p >> 6] >> np.uint64(p & 63)) & np.uint64(1)) << b
+            out[i, t] = key
 
 
 def link(keys: np.ndarray, ids: np.ndarray, rows: np.ndarray, head: np.ndarray, pg_next: np.ndarray,
@@ -164,7 +177,7 @@ def link(keys: np.ndarray, ids: np.ndarray, rows: np.ndarray, head: np.ndarray, 
                 state)
 
 
-_NAMES = ("assign_binary", "assign_float", "link")
+_NAMES = ("assign_binary", "assign_float", "grow", "keys_binary", "link")
 _compiled: list[SimpleNamespace | None] = []
 
 
@@ -220,6 +233,10 @@ def _warm(ns: SimpleNamespace) -> None:
     out = np.zeros(1, np.int32)
     for kernel, dtype, thr in ((ns.assign_binary, np.uint64, 8), (ns.assign_float, np.float32, 0.5)):
         pl = pool(1, 1, 8, 64, 2, dtype)
-        kernel(keys, np.zeros((1, 2), dtype), *(pl[a] for a in POOL_ARGS), np.zeros((2, 2), dtype),
-               np.zeros(2, np.uint8), 0, thr, True, 2, out)
+        kernel(keys, np.zeros((1, 2), dtype), *(pl[a] for a in POOL_ARGS), np.zeros(2, np.uint8), thr, out)
         ns.link(keys, np.zeros(1, np.int32), np.zeros((1, 2), dtype), *(pl[a] for a in POOL_ARGS))
+    for dtype in (np.uint64, np.float32):
+        pl = pool(1, 1, 8, 64, 2, dtype)
+        ns.grow(np.zeros(1, np.int64), keys, np.zeros((1, 2), dtype), *(pl[a] for a in POOL_ARGS),
+                np.zeros((2, 2), dtype), np.zeros(2, np.uint8), 0, 2, out)
+    ns.keys_binary(np.zeros((1, 1), np.uint64), np.zeros((1, 1), np.int64), keys)

@@ -79,10 +79,14 @@ class IncrementalInfo:
     fingerprint: str
 
 
-# Settings measured on real frames (bench/bench_incremental.py, "index" section): per kind, the
-# merge threshold, the hash tables and their bits.
+# Per kind: the merge threshold, the hash tables and their bits. Binary (ORB): the best mean
+# R@100P of 9 settings over train_drives, the corridor and two Gardens Point pairings with
+# ``fast`` (bench/bench_incremental.py, "grid"; thresholds 56/64/72 bits, 4x16, 8x16 and 16x12
+# tables). Float (XFeat, unit vectors): 0.75 lies between the median distance of a descriptor
+# to its mutual nearest neighbour in the same place seen by night (0.59) and in another place
+# (0.65) and their 90th percentiles (0.70, 0.74) on Gardens Point; not tuned by a grid.
 DEFAULTS: dict[str, dict[str, float]] = {
-    "binary": {"threshold": 40, "tables": 16, "bits": 12},
+    "binary": {"threshold": 64, "tables": 16, "bits": 12},
     "float": {"threshold": 0.75, "tables": 16, "bits": 10},
 }
 
@@ -152,7 +156,7 @@ class IncrementalVocabulary:
             self._planes = rng.standard_normal((kind.size, self.tables * self.bits))
         else:
             self._positions = np.stack([rng.choice(width or 8, self.bits, replace=False)
-                                        for _ in range(self.tables)])
+                                        for _ in range(self.tables)]).astype(np.int64)
         self._pow2 = (1 << np.arange(self.bits, dtype=np.int64))
         self._lock = threading.RLock()
         self._owner: object | None = None
@@ -171,6 +175,8 @@ class IncrementalVocabulary:
         self._pool = _kernel_module().pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._dead_linked = 0
         self._since_save = 0
+        self._version = getattr(self, "_version", 0) + 1  # what was assigned before is stale
+        self._cache: tuple[np.ndarray, int, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ identity
     @property
@@ -241,14 +247,14 @@ class IncrementalVocabulary:
         """(N, tables) int64 bucket of each descriptor in each table."""
         if self._float:
             signs = (np.asarray(d, np.float64) @ self._planes) > 0
-        else:
-            bits = np.unpackbits(np.ascontiguousarray(d, np.uint8), axis=1, bitorder="little")
-            signs = bits[:, self._positions.reshape(-1)].astype(bool)
-        return signs.reshape(d.shape[0], self.tables, self.bits).astype(np.int64) @ self._pow2
+            return signs.reshape(d.shape[0], self.tables, self.bits).astype(np.int64) @ self._pow2
+        out = np.empty((d.shape[0], self.tables), np.int64)
+        _kernels().keys_binary(as_words(d), self._positions, out)
+        return out
 
-    def _room(self, more: int) -> None:
-        """Room for ``more`` new words: their rows, and the page pool's worst case (each of
-        them opening a page of the largest size in every table)."""
+    def _room(self, more: int, pool: bool = True) -> None:
+        """Room for ``more`` new words: their rows, and (``pool``) the page pool's worst case
+        (each of them opening a page of the largest size in every table)."""
         need = self._made + more
         if need > self._alloc:
             alloc = max(need, 2 * self._alloc, 1024)
@@ -257,6 +263,8 @@ class IncrementalVocabulary:
             self._last = _grow(self._last, (alloc,))
             self._alive = _grow(self._alive, (alloc,))
             self._alloc = alloc
+        if not pool:
+            return
         pl = self._pool
         pages, slots = (int(v) for v in pl["state"])
         mod = _kernel_module()
@@ -270,23 +278,43 @@ class IncrementalVocabulary:
             pl["slot_ids"] = _grow(pl["slot_ids"], (size,))
             pl["slot_desc"] = _grow(pl["slot_desc"], (size, pl["slot_desc"].shape[1]))
 
-    def _assign(self, d: np.ndarray, create: bool) -> np.ndarray:
+    def _assign(self, d: np.ndarray) -> np.ndarray:
+        """Each descriptor's word among the live ones (-1: none within the threshold); the last
+        answer again when nothing was learned since and ``d`` holds the same descriptors (the
+        image a detector queried with is the image it then adds)."""
+        return self._assigned(d)[0]
+
+    def _assigned(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_assign`'s words and the descriptors' keys."""
+        cached = self._cache
+        if cached is not None and cached[1] == self._version and np.array_equal(cached[0], d):
+            return cached[2], cached[3]
         n = d.shape[0]
         out = np.full(n, _NONE, np.int32)
-        if n == 0 or (not create and self._made == 0):
-            return out
-        if create:
-            self._room(n)
-        k = _kernels()
         keys = self._keys(d)
+        if n and self._made:
+            pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
+            if self._float:
+                q = np.ascontiguousarray(d, np.float32)
+                _kernels().assign_float(keys, q, *pl, self._alive, self.threshold ** 2, out)
+            else:
+                _kernels().assign_binary(keys, as_words(d), *pl, self._alive, int(self.threshold), out)
+        out.flags.writeable = False
+        self._cache = (np.array(d), self._version, out, keys)  # a copy: the caller may reuse its array
+        return out, keys
+
+    def _grow_words(self, d: np.ndarray) -> np.ndarray:
+        """Each descriptor's word, a new one for each that joined none (see :meth:`learn`)."""
+        words, keys = self._assigned(d)
+        todo = np.flatnonzero(words < 0)
+        out = words.copy()
+        if todo.size == 0:
+            return out
+        self._room(int(todo.size))
         pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
-        if self._float:
-            q = np.ascontiguousarray(d, np.float32)
-            self._made = k.assign_float(keys, q, *pl, self._words, self._alive, self._made,
-                                        self.threshold ** 2, create, self.id_space, out)
-        else:
-            self._made = k.assign_binary(keys, as_words(d), *pl, self._words, self._alive, self._made,
-                                         int(self.threshold), create, self.id_space, out)
+        q = np.ascontiguousarray(d, np.float32) if self._float else as_words(d)
+        self._made = _kernels().grow(todo, keys, q, *pl, self._words, self._alive, self._made, self.id_space,
+                                     out)
         return out
 
     def _vector(self, words: np.ndarray, fw: np.ndarray | None, images: int) -> BowVector:
@@ -321,7 +349,7 @@ class IncrementalVocabulary:
         """
         fw = self._check(descriptors, weights)
         with self._lock:
-            words = self._assign(descriptors, create=False)
+            words = self._assign(descriptors)
             bow = self._vector(words, fw, max(self._images, 1))
         return bow, self._direct(words)
 
@@ -348,7 +376,8 @@ class IncrementalVocabulary:
         return FeatureVector(np.zeros(words.shape[0], np.int32), 0)
 
     def _learn(self, descriptors: np.ndarray) -> np.ndarray:
-        words = self._assign(descriptors, create=True)
+        words = self._grow_words(descriptors)
+        self._version += 1
         seen = np.unique(words[words >= 0])
         self._df[seen] += 1
         self._last[seen] = self._images
@@ -359,8 +388,8 @@ class IncrementalVocabulary:
         return words
 
     def _purge(self) -> None:
-        """Drop the words seen in one image only and not since ``purge_after`` images; relink
-        the buckets once the dropped words still in them outnumber half the live ones."""
+        """Drop the words seen in one image only and not since ``purge_after`` images; rebuild
+        the index once the dropped words still in it outnumber the live ones."""
         n = self._made
         old = self._last[:n] < self._images - self.purge_after
         gone = (self._alive[:n] == 1) & (self._df[:n] == 1) & old
@@ -368,8 +397,9 @@ class IncrementalVocabulary:
         if not dropped:
             return
         self._alive[:n][gone] = 0
+        self._version += 1
         self._dead_linked += dropped
-        if self._dead_linked > max(self.words_live // 2, 4096):
+        if self._dead_linked > max(self.words_live, 4096):
             self._relink()
 
     def _relink(self) -> None:
@@ -398,6 +428,11 @@ class IncrementalVocabulary:
     def due(self) -> bool:
         """Whether ``save_every`` images were learned since the last save."""
         return self._since_save >= self.save_every
+
+    @property
+    def unsaved(self) -> bool:
+        """Whether anything was learned since the last save or restore."""
+        return self._since_save > 0
 
     def save(self, path: str | Path, map_id: bytes) -> None:
         """Write the words to ``path`` atomically (a temporary file, fsynced, renamed over it).
@@ -428,6 +463,34 @@ class IncrementalVocabulary:
             os.replace(tmp, p)
             _fsync_dir(p.parent)
             self._since_save = 0
+
+    @classmethod
+    def of_words_file(cls, path: str | Path) -> IncrementalVocabulary:
+        """A new vocabulary with the settings a words file records (nothing learned: a map
+        opened with it reads the words back).
+
+        Raises:
+            VocabularyError: not a words file, or settings out of range.
+        """
+        p = Path(path)
+        try:
+            with open(p, "rb") as f:
+                head = f.read(_HEADER_SIZE)
+        except OSError as exc:
+            raise VocabularyError(f"{p}: cannot read the words file ({exc.strerror or exc})") from None
+        if len(head) < _HEADER_SIZE or head[:4] != _MAGIC:
+            raise VocabularyError(f"{p}: not a stablecues words file")
+        fields = head[: _HEADER.size]
+        if struct.unpack_from("<I", head, _HEADER.size)[0] != zlib.crc32(fields):
+            raise VocabularyError(f"{p}: the header's checksum does not match (corrupt file)")
+        _, _, is_float, _, dim, tables, bits, threshold, id_space, purge_after, seed, *_ = (
+            _HEADER.unpack(fields))
+        try:
+            kind = DescriptorKind("float" if is_float else "binary", dim)
+            return cls(kind, threshold=threshold, tables=tables, bits=bits, id_space=id_space,
+                       purge_after=purge_after, seed=seed)
+        except (ConfigError, InputError) as exc:
+            raise VocabularyError(f"{p}: {exc}") from None
 
     def restore(self, path: str | Path, map_id: bytes) -> None:
         """Read the words saved at ``path`` for the map ``map_id`` (replacing what is here).
@@ -479,7 +542,7 @@ class IncrementalVocabulary:
             raise VocabularyError(f"{where}: the words' checksum does not match (corrupt file)")
         with self._lock:
             self._reset()
-            self._room(n)
+            self._room(n, pool=False)  # the pool is made by the relink below
             a = n * width * item
             words = np.frombuffer(raw, np.float32 if self._float else np.uint64, n * width, 0)
             self._words[:n] = words.reshape(n, width)
