@@ -62,10 +62,14 @@ from stablecues.vocabulary.incremental import IncrementalVocabulary
 HERE = Path(__file__).resolve().parent
 PRESETS = ("fast", "default", "learned")
 GRID_SETS = ("train_drives", "corridor", "day_left->day_right", "day_right->night_right")
-GRID = {  # preset -> (thresholds, (tables, bits) pairs)
-    "fast": ((56, 64, 72), ((4, 16), (8, 16), (16, 12))),
-    "learned": ((0.6, 0.7, 0.8), ((8, 12), (16, 10))),
+GRID = {  # preset -> (thresholds, (tables, bits) pairs, sets)
+    "fast": ((56, 64, 72), ((4, 16), (8, 16), (16, 12)), GRID_SETS),
+    # learned descriptors are for the changes of light: both night pairings
+    "learned": ((0.6, 0.7, 0.8), ((16, 12),), ("train_drives", "corridor", "day_right->night_right",
+                                               "day_left->night_right")),
 }
+GRID_PRESETS = list(GRID)  # --grid-presets
+SETS_PRESETS = list(PRESETS)  # --sets-presets
 SCALE_SIZES = (1_000, 10_000, 100_000)
 SCALE_WINDOW = 200  # entries timed around each size
 FLIP_BITS = 8  # bits flipped per descriptor per patrol lap
@@ -158,8 +162,10 @@ def kind_of(name: str) -> DescriptorKind:
 # ---------------------------------------------------------------------------------- sections
 def bench_grid(work: Path, network: bool) -> dict[str, Any]:
     sets = load_sets()
-    out: dict[str, Any] = {"sets": list(GRID_SETS)}
-    for name, (thresholds, indexes) in GRID.items():
+    out: dict[str, Any] = {"sets": {name: list(spec[2]) for name, spec in GRID.items()}}
+    for name, (thresholds, indexes, grid_sets) in GRID.items():
+        if name not in GRID_PRESETS:
+            continue
         if needs_segmentation(preset(name)) and not network:
             out[name] = {"skipped": "needs the segmentation network"}
             continue
@@ -169,7 +175,7 @@ def bench_grid(work: Path, network: bool) -> dict[str, Any]:
             for tables, bits in indexes:
                 label = f"t{thr:g}_{tables}x{bits}"
                 per: dict[str, Any] = {}
-                for set_name in GRID_SETS:
+                for set_name in grid_sets:
                     ds, gts = sets[set_name]
                     voc = IncrementalVocabulary(kind, threshold=thr, tables=tables, bits=bits)
                     per[set_name] = run_one(ds, gts, name, {}, voc, work, f"grid_{name}_{label}")
@@ -188,7 +194,7 @@ def bench_sets(work: Path, network: bool) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for set_name, (ds, gts) in sets.items():
         res: dict[str, Any] = {"frames": len(ds)}
-        for name in PRESETS:
+        for name in SETS_PRESETS:
             for vocab in ("trained", "incremental"):
                 label = f"{name} {vocab}"
                 if needs_segmentation(preset(name)) and not network:
@@ -199,7 +205,7 @@ def bench_sets(work: Path, network: bool) -> dict[str, Any]:
                 line(set_name, label, res[label])
         out[set_name] = res
     small: dict[str, Any] = {}
-    names = [n for n in PRESETS if network or not needs_segmentation(preset(n))]
+    names = [n for n in SETS_PRESETS if network or not needs_segmentation(preset(n))]
     for vocab in ("trained", "incremental"):
         small[vocab] = {"desk_loop10": bench_desk(names, {"vocabulary": vocab}),
                         "euroc_pairs": bench_euroc(names, {"vocabulary": vocab})}
@@ -329,7 +335,10 @@ _GRID_LINE = re.compile(r"^\s+(\S+)\s+(\w+) t([0-9.]+)_(\d+)x(\d+)\s+R@100P ([0-
 def grid_from_log(path: Path) -> dict[str, Any]:
     """The ``grid`` section from the lines a run of it printed (a run stopped before it wrote its
     results: what it printed is what it measured)."""
-    out: dict[str, Any] = {"from_log": str(path.name), "sets": list(GRID_SETS)}
+    out: dict[str, Any] = {"from_log": str(path.name), "sets": {"fast": list(GRID_SETS)},
+                           "note": "the fast grid ran on 2026-12-06 before a descriptor that joins no word "
+                                   "became a word of its own (it then first joined a word made by the "
+                                   "same image within the threshold); the settings are unchanged"}
     for text in path.read_text().splitlines():
         m = _GRID_LINE.match(text)
         if not m:
@@ -340,8 +349,8 @@ def grid_from_log(path: Path) -> dict[str, Any]:
                                                             "bits": int(bits), "sets": {}})
         entry["sets"][set_name] = {"r_at_100p": float(r), "tp": int(tp), "fp": int(fp),
                                    "words_live": int(words), "ms_per_frame": float(ms)}
-    for configs in out.values():
-        if isinstance(configs, dict):
+    for key, configs in out.items():
+        if key != "sets" and isinstance(configs, dict):
             for entry in configs.values():
                 figures = [v["r_at_100p"] for v in entry["sets"].values()]
                 entry["mean_r_at_100p"] = round(float(np.mean(figures)), 4)
@@ -357,13 +366,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "results" / "incremental.json")
     ap.add_argument("--grid-log", type=Path, metavar="LOG",
                     help="take the grid section from what a run of it printed (LOG), then stop")
+    ap.add_argument("--grid-presets", default=",".join(GRID), help="the presets the grid section runs")
+    ap.add_argument("--sets-presets", default=",".join(PRESETS), help="the presets the sets section runs")
     args = ap.parse_args()
+    GRID_PRESETS[:] = [p for p in args.grid_presets.split(",") if p]
+    SETS_PRESETS[:] = [p for p in args.sets_presets.split(",") if p]
     if args.grid_log is not None:
         old = json.loads(args.out.read_text()) if args.out.is_file() else {}
-        old["grid"] = grid_from_log(args.grid_log)
+        old["grid"] = merge(old.get("grid", {}), grid_from_log(args.grid_log), depth=1)
         args.out.write_text(json.dumps(old, indent=2, default=str) + "\n")
         for name, configs in old["grid"].items():
-            if isinstance(configs, dict):
+            if name != "sets" and isinstance(configs, dict):
                 for label, entry in configs.items():
                     print(f"  {name} {label}: mean R@100P {entry['mean_r_at_100p']}, "
                           f"min {entry['min_r_at_100p']}")
@@ -390,7 +403,7 @@ def main() -> None:
     results["last_run"] = {"sections": sections, "date": time.strftime("%Y-%m-%d %H:%M"),
                            "wall_s": round(time.perf_counter() - t0, 1)}
     if args.out.is_file():
-        results = merge(json.loads(args.out.read_text()), results, depth=1)
+        results = merge(json.loads(args.out.read_text()), results, depth=4)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
     print(f"written {args.out}")

@@ -1,5 +1,6 @@
-"""Print the README's results table from the bench results (``bench/results/learned.json`` and
-``loops.json``), so that every figure of the table is one a bench script wrote.
+"""Print the README's results table from the bench results (``bench/results/learned.json``,
+``loops.json`` and ``incremental.json``), so that every figure of the table is one a bench
+script wrote.
 
     python scripts/readme_results.py          # the table, as the README has it
 
@@ -18,6 +19,9 @@ RESULTS = REPO / "bench" / "results"
 #: (label, key in learned.json; None for the row of loops.json's DBoW2 baseline)
 ROWS = (("`default`", "default"), ("`fast`", "fast"), ("`bow` (DLoopDetector)", "bow"),
         ("DBoW2 top-1, raw score", None), ("`learned`", "learned"))
+#: rows of incremental.json's sets: (label, "preset vocabulary")
+INCREMENTAL_ROWS = (("`fast --vocab incremental`", "fast incremental"),
+                    ("`learned --vocab incremental`", "learned incremental"))
 GARDENS = ("day_left->day_right", "day_right->night_right", "day_left->night_right")
 
 
@@ -58,10 +62,17 @@ def table() -> str:
             gardens = [learned["gardens"][p][key]["pm8"]["r_at_100p"] for p in GARDENS]
         cells = [_cell(rev[0], 3), _cell(rev[1], 3), _cell(rev[2], 3), *(_cell(g) for g in gardens)]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    when = max(_date(RESULTS / "learned.json"), _date(RESULTS / "loops.json"))
+    inc = json.loads((RESULTS / "incremental.json").read_text())["sets"]
+    for label, key in INCREMENTAL_ROWS:
+        rev = [inc[s][key]["exact"]["r_at_100p"] for s in ("train_drives", "val_drive", "corridor")]
+        gardens = [inc[p][key]["pm8"]["r_at_100p"] for p in GARDENS]
+        cells = [*(_cell(r, 3) for r in rev), *(_cell(g) for g in gardens)]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    when = max(_date(RESULTS / f) for f in ("learned.json", "loops.json", "incremental.json"))
     lines.append("")
     lines.append(f"R@100P, exact cell of the ground truth (Gardens Point: within 8 places); measured up to "
-                 f"{when} on a shared 2-core x86 machine (`bench/bench_learned.py`, `bench/bench_loops.py`).")
+                 f"{when} on a shared 2-core x86 machine (`bench/bench_learned.py`, `bench/bench_loops.py`, "
+                 "`bench/bench_incremental.py`).")
     return "\n".join(lines)
 
 

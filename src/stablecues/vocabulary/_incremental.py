@@ -117,6 +117,8 @@ def assign_float(keys: np.ndarray, q: np.ndarray, head: np.ndarray, pg_next: np.
                     for j in range(dims):
                         e = np.float64(q[i, j]) - np.float64(slot_desc[s, j])
                         d += e * e
+                        if (j & 15) == 15 and d > best_d:  # already farther: it cannot win
+                            break
                     if d < best_d or (d == best_d and (best == NONE or slot_ids[s] < best)):
                         c = slot_ids[s]
                         if alive[c]:

@@ -42,7 +42,7 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -82,12 +82,12 @@ class IncrementalInfo:
 # Per kind: the merge threshold, the hash tables and their bits. Binary (ORB): the best mean
 # R@100P of 9 settings over train_drives, the corridor and two Gardens Point pairings with
 # ``fast`` (bench/bench_incremental.py, "grid"; thresholds 56/64/72 bits, 4x16, 8x16 and 16x12
-# tables). Float (XFeat, unit vectors): 0.75 lies between the median distance of a descriptor
-# to its mutual nearest neighbour in the same place seen by night (0.59) and in another place
-# (0.65) and their 90th percentiles (0.70, 0.74) on Gardens Point; not tuned by a grid.
+# tables). Float (XFeat, unit vectors): the best of 0.6/0.7/0.8 with 16 tables of 12 bits over
+# train_drives, the corridor and both Gardens Point night pairings with ``learned`` (the larger
+# threshold won on every set: a coarse word survives a change of light).
 DEFAULTS: dict[str, dict[str, float]] = {
     "binary": {"threshold": 64, "tables": 16, "bits": 12},
-    "float": {"threshold": 0.75, "tables": 16, "bits": 10},
+    "float": {"threshold": 0.8, "tables": 16, "bits": 12},
 }
 
 
@@ -175,6 +175,10 @@ class IncrementalVocabulary:
         self._pool = _kernel_module().pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._dead_linked = 0
         self._since_save = 0
+        # float keys: signs of projections of the descriptors less this centre, the mean of the
+        # first image learned (learned descriptors sit in a cone: planes through the origin put
+        # most of them in a few buckets, 8x the candidates on Gardens Point XFeat)
+        self._center: np.ndarray | None = None
         self._version = getattr(self, "_version", 0) + 1  # what was assigned before is stale
         self._cache: tuple[np.ndarray, int, np.ndarray, np.ndarray] | None = None
 
@@ -246,7 +250,8 @@ class IncrementalVocabulary:
     def _keys(self, d: np.ndarray) -> np.ndarray:
         """(N, tables) int64 bucket of each descriptor in each table."""
         if self._float:
-            signs = (np.asarray(d, np.float64) @ self._planes) > 0
+            x = np.asarray(d, np.float64)
+            signs = ((x - self._center if self._center is not None else x) @ self._planes) > 0
             return signs.reshape(d.shape[0], self.tables, self.bits).astype(np.int64) @ self._pow2
         out = np.empty((d.shape[0], self.tables), np.int64)
         _kernels().keys_binary(as_words(d), self._positions, out)
@@ -376,6 +381,9 @@ class IncrementalVocabulary:
         return FeatureVector(np.zeros(words.shape[0], np.int32), 0)
 
     def _learn(self, descriptors: np.ndarray) -> np.ndarray:
+        if self._float and self._center is None and descriptors.shape[0]:
+            self._center = np.asarray(descriptors, np.float64).mean(axis=0)
+            self._version += 1  # keys made before are stale
         words = self._grow_words(descriptors)
         self._version += 1
         seen = np.unique(words[words >= 0])
@@ -445,10 +453,14 @@ class IncrementalVocabulary:
             n = self._made
             body = [np.ascontiguousarray(self._words[:n]).tobytes(), self._df[:n].astype("<i4").tobytes(),
                     self._last[:n].astype("<i4").tobytes(), self._alive[:n].tobytes()]
+            if self._float:  # the keys' centre (zeros until the first image)
+                centre = self._center if self._center is not None else np.zeros(self.kind.size)
+                body.append(centre.astype("<f8").tobytes())
             crc = 0
             for part in body:
                 crc = zlib.crc32(part, crc)
-            fields = _HEADER.pack(_MAGIC, _VERSION, int(self._float), 0, self.kind.size, self.tables,
+            centred = int(self._center is not None)
+            fields = _HEADER.pack(_MAGIC, _VERSION, int(self._float), centred, self.kind.size, self.tables,
                                   self.bits, self.threshold, self.id_space, self.purge_after, self.seed,
                                   n, self._images, map_id, crc)
             header = fields + struct.pack("<I", zlib.crc32(fields))
@@ -472,25 +484,13 @@ class IncrementalVocabulary:
         Raises:
             VocabularyError: not a words file, or settings out of range.
         """
-        p = Path(path)
+        h = _read_header(Path(path))
         try:
-            with open(p, "rb") as f:
-                head = f.read(_HEADER_SIZE)
-        except OSError as exc:
-            raise VocabularyError(f"{p}: cannot read the words file ({exc.strerror or exc})") from None
-        if len(head) < _HEADER_SIZE or head[:4] != _MAGIC:
-            raise VocabularyError(f"{p}: not a stablecues words file")
-        fields = head[: _HEADER.size]
-        if struct.unpack_from("<I", head, _HEADER.size)[0] != zlib.crc32(fields):
-            raise VocabularyError(f"{p}: the header's checksum does not match (corrupt file)")
-        _, _, is_float, _, dim, tables, bits, threshold, id_space, purge_after, seed, *_ = (
-            _HEADER.unpack(fields))
-        try:
-            kind = DescriptorKind("float" if is_float else "binary", dim)
-            return cls(kind, threshold=threshold, tables=tables, bits=bits, id_space=id_space,
-                       purge_after=purge_after, seed=seed)
+            kind = DescriptorKind("float" if h.is_float else "binary", h.dim)
+            return cls(kind, threshold=h.threshold, tables=h.tables, bits=h.bits, id_space=h.id_space,
+                       purge_after=h.purge_after, seed=h.seed)
         except (ConfigError, InputError) as exc:
-            raise VocabularyError(f"{p}: {exc}") from None
+            raise VocabularyError(f"{path}: {exc}") from None
 
     def restore(self, path: str | Path, map_id: bytes) -> None:
         """Read the words saved at ``path`` for the map ``map_id`` (replacing what is here).
@@ -500,59 +500,45 @@ class IncrementalVocabulary:
                 made with other settings or for another map.
         """
         p = Path(path)
-        where = str(p)
-        try:
-            size = p.stat().st_size
-            with open(p, "rb") as f:
-                head = f.read(_HEADER_SIZE)
-                if len(head) < _HEADER_SIZE or head[:4] != _MAGIC:
-                    raise VocabularyError(f"{where}: not a stablecues words file (expected {_MAGIC!r} "
-                                          f"and a {_HEADER_SIZE}-byte header)")
-                fields = head[: _HEADER.size]
-                (_, version, is_float, _, dim, tables, bits, threshold, id_space, purge_after, seed, n,
-                 images, owner, crc) = _HEADER.unpack(fields)
-                if struct.unpack_from("<I", head, _HEADER.size)[0] != zlib.crc32(fields):
-                    raise VocabularyError(f"{where}: the header's checksum does not match (corrupt file)")
-                if version != _VERSION:
-                    raise VocabularyError(f"{where}: words file version {version}, expected {_VERSION}")
-                mine = (int(self._float), self.kind.size, self.tables, self.bits, self.threshold,
-                        self.id_space, self.purge_after, self.seed)
-                if (is_float, dim, tables, bits, threshold, id_space, purge_after, seed) != mine:
-                    raise VocabularyError(f"{where}: made by an incremental vocabulary with other settings "
-                                          f"({'float' if is_float else 'binary'} {dim}, "
-                                          f"threshold {threshold:g}, "
-                                          f"{tables}x{bits} bits, purge {purge_after}); this one has "
-                                          f"{self.kind}, threshold {self.threshold:g}, "
-                                          f"{self.tables}x{self.bits} bits, purge {self.purge_after}")
-                if owner != map_id:
-                    raise VocabularyError(f"{where}: the words of another map (id {owner.hex()[:12]}..., "
-                                          f"this map is {map_id.hex()[:12]}...)")
-                width = self._words.shape[1]
-                item = 4 if self._float else 8
-                if n > id_space:
-                    raise VocabularyError(f"{where}: {n} words in an id space of {id_space}")
-                expected = _HEADER_SIZE + n * (width * item + 9)
-                if size != expected:
-                    raise VocabularyError(f"{where}: {size} bytes, expected {expected} for {n} words "
-                                          "(truncated or corrupt)")
-                raw = f.read()
-        except OSError as exc:
-            raise VocabularyError(f"{where}: cannot read the words file ({exc.strerror or exc})") from None
-        if zlib.crc32(raw) != crc:
-            raise VocabularyError(f"{where}: the words' checksum does not match (corrupt file)")
+        h = _read_header(p)
+        mine = (int(self._float), self.kind.size, self.tables, self.bits, self.threshold, self.id_space,
+                self.purge_after, self.seed)
+        if (h.is_float, h.dim, h.tables, h.bits, h.threshold, h.id_space, h.purge_after, h.seed) != mine:
+            theirs = (f"{'float' if h.is_float else 'binary'} {h.dim}, threshold {h.threshold:g}, "
+                      f"{h.tables}x{h.bits} bits, purge {h.purge_after}")
+            raise VocabularyError(f"{p}: made by an incremental vocabulary with other settings ({theirs}); "
+                                  f"this one has {self.kind}, threshold {self.threshold:g}, "
+                                  f"{self.tables}x{self.bits} bits, purge {self.purge_after}")
+        if h.owner != map_id:
+            raise VocabularyError(f"{p}: the words of another map (id {h.owner.hex()[:12]}..., this map is "
+                                  f"{map_id.hex()[:12]}...)")
+        n, dim = h.n, h.dim
+        width = self._words.shape[1]
+        item = 4 if self._float else 8
+        if n > h.id_space:
+            raise VocabularyError(f"{p}: {n} words in an id space of {h.id_space}")
+        if h.has_centre not in (0, 1) or (h.has_centre and not h.is_float):
+            raise VocabularyError(f"{p}: a centre flag of {h.has_centre} (corrupt file)")
+        expected = _HEADER_SIZE + n * (width * item + 9) + (8 * dim if h.is_float else 0)
+        raw = _body(p, expected)
+        if zlib.crc32(raw) != h.crc:
+            raise VocabularyError(f"{p}: the words' checksum does not match (corrupt file)")
+        a = n * width * item
+        alive = np.frombuffer(raw, np.uint8, n, a + 8 * n)
+        if alive.size and int(alive.max()) > 1:
+            raise VocabularyError(f"{p}: live flags other than 0 and 1 (corrupt file)")
+        centre = np.frombuffer(raw, "<f8", dim, a + 9 * n).astype(np.float64) if h.has_centre else None
+        if centre is not None and not np.isfinite(centre).all():
+            raise VocabularyError(f"{p}: the keys' centre is not finite (corrupt file)")
         with self._lock:
             self._reset()
             self._room(n, pool=False)  # the pool is made by the relink below
-            a = n * width * item
-            words = np.frombuffer(raw, np.float32 if self._float else np.uint64, n * width, 0)
-            self._words[:n] = words.reshape(n, width)
+            self._words[:n] = np.frombuffer(raw, self._dtype, n * width, 0).reshape(n, width)
             self._df[:n] = np.frombuffer(raw, "<i4", n, a)
             self._last[:n] = np.frombuffer(raw, "<i4", n, a + 4 * n)
-            alive = np.frombuffer(raw, np.uint8, n, a + 8 * n)
-            if alive.size and int(alive.max()) > 1:
-                raise VocabularyError(f"{where}: live flags other than 0 and 1 (corrupt file)")
             self._alive[:n] = alive
-            self._made, self._images = n, int(images)
+            self._center = centre
+            self._made, self._images = n, int(h.images)
             self._relink()
 
     def forget(self) -> None:
@@ -565,6 +551,60 @@ class IncrementalVocabulary:
         with self._lock:
             self._learn(descriptors)
             self._since_save = self.save_every  # what was replayed is saved at the next chance
+
+
+class _Header(NamedTuple):
+    version: int
+    is_float: int
+    has_centre: int
+    dim: int
+    tables: int
+    bits: int
+    threshold: float
+    id_space: int
+    purge_after: int
+    seed: int
+    n: int
+    images: int
+    owner: bytes
+    crc: int
+
+
+def _read_header(p: Path) -> _Header:
+    """A words file's header, its magic, checksum and version checked.
+
+    Raises:
+        VocabularyError: one line naming the file.
+    """
+    try:
+        with open(p, "rb") as f:
+            head = f.read(_HEADER_SIZE)
+    except OSError as exc:
+        raise VocabularyError(f"{p}: cannot read the words file ({exc.strerror or exc})") from None
+    if len(head) < _HEADER_SIZE or head[:4] != _MAGIC:
+        raise VocabularyError(f"{p}: not a stablecues words file (expected {_MAGIC!r} and a "
+                              f"{_HEADER_SIZE}-byte header)")
+    fields = head[: _HEADER.size]
+    if struct.unpack_from("<I", head, _HEADER.size)[0] != zlib.crc32(fields):
+        raise VocabularyError(f"{p}: the header's checksum does not match (corrupt file)")
+    h = _Header(*_HEADER.unpack(fields)[1:])
+    if h.version != _VERSION:
+        raise VocabularyError(f"{p}: words file version {h.version}, expected {_VERSION}")
+    return h
+
+
+def _body(p: Path, expected: int) -> bytes:
+    """A words file's bytes after the header, once its size is the ``expected`` one."""
+    try:
+        size = p.stat().st_size
+        if size != expected:
+            raise VocabularyError(f"{p}: {size} bytes, expected {expected} for the words its header "
+                                  "counts (truncated or corrupt)")
+        with open(p, "rb") as f:
+            f.seek(_HEADER_SIZE)
+            return f.read()
+    except OSError as exc:
+        raise VocabularyError(f"{p}: cannot read the words file ({exc.strerror or exc})") from None
 
 
 def _grow(a: np.ndarray, shape: tuple[int, ...], fill: int = 0) -> np.ndarray:
