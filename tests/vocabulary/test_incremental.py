@@ -280,3 +280,43 @@ def test_cli_run_with_an_incremental_vocabulary(tmp_path: Path, capsys: pytest.C
     err = capsys.readouterr().err.strip()
     assert "incremental" in err and "\n" not in err
     assert cli_main([*args[:-5], "--resume", "--no-progress", "--pictures", "0"]) == 0
+
+
+def test_words_lost_after_a_removal_are_learned_again_without_it(orb_frames: list[np.ndarray],
+                                                                 tmp_path: Path) -> None:
+    """A map whose words file is gone, with an entry removed: it reopens (the removed entry's
+    descriptors are gone, its words are not learned again), and a new map may replace it."""
+    from stablecues.database.files import remove_database
+
+    path = tmp_path / "map.sqlite"
+    voc = IncrementalVocabulary(ORB, save_every=100)
+    with Database(voc, path) as db:
+        for d in orb_frames[:6]:
+            db.add(*voc.learn(d), fake_features(d))
+        db.remove([1])
+    words_path(path).unlink()
+    again = IncrementalVocabulary(ORB, save_every=100)
+    with Database(again, path) as db:
+        assert again.images == 6 and len(db) == 6
+        db.add(*again.learn(orb_frames[6]), fake_features(orb_frames[6]))
+    assert words_path(path).is_file()
+    remove_database(path)  # what `run --overwrite` does: the words go with the map
+    assert not words_path(path).exists()
+    with Database(IncrementalVocabulary(ORB), path) as db:
+        assert len(db) == 0
+
+
+def test_a_float_map_stores_what_its_vocabulary_learned(tmp_path: Path) -> None:
+    """Float descriptors are stored as int8: the vocabulary must learn that form (what a reopened
+    map learns again), and an add of other descriptors is refused in one line."""
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(50, 64)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    feats = fake_features(d)
+    voc = IncrementalVocabulary(XFEAT)
+    with Database(voc, tmp_path / "f.sqlite") as db:
+        with pytest.raises(InputError, match="stored_form"):
+            db.add(*voc.learn(d), feats)
+        voc.forget()
+        db.add(*voc.learn(db.stored_form(d)), feats)
+        assert len(db) == 1

@@ -62,7 +62,7 @@ def remove_database(db_path: str | Path) -> None:
     """Delete a database file, its SQLite side files and its index directory (only the files
     stablecues writes there)."""
     path = Path(db_path)
-    for suffix in ("", "-wal", "-shm", "-journal", "-entries"):
+    for suffix in ("", "-wal", "-shm", "-journal", "-entries", ".words", ".words.tmp"):
         Path(str(path) + suffix).unlink(missing_ok=True)
     d = index_dir(path)
     if d.is_dir() and not d.is_symlink():

@@ -167,10 +167,15 @@ def _refuse_a_new_map_over_old_files(path: Path) -> None:
     if not fresh:
         return
     segments = stored_segments(path)
+    state = "missing" if not path.exists() else "empty (0 bytes)"
+    words = words_path(path)
+    if words.is_file():  # an incremental vocabulary's words of a map that is gone
+        raise DatabaseError(f"{path}: the SQLite file is {state} but {words.name} of a map remains beside "
+                            "it: refusing to start a new map over it (restore the file, or move the words "
+                            "away)")
     if segments or logged:
         found = (f"{len(segments)} index segment file(s) in {index_dir(path)}" if segments else "")
         found += (" and " if segments and logged else "") + (f"the entry log {log}" if logged else "")
-        state = "missing" if not path.exists() else "empty (0 bytes)"
         raise DatabaseError(f"{path}: the SQLite file is {state} but {found} of a map remain: refusing to "
                             "start a new map over them (restore the file, or move them away to start anew)")
 
@@ -511,20 +516,32 @@ class Database:
                 raise ConfigError(f"the incremental vocabulary has learned {voc.images} images, the map "
                                   f"holds {n}: give a new map a new vocabulary")
             return
+        self._catch_up(voc, n)
+
+    def _catch_up(self, voc: IncrementalVocabulary, n: int) -> None:
+        """The saved words into ``voc``, then the entries added after them learned again."""
+        assert self.path is not None
         wp = words_path(self.path)
         self._read_words(voc, wp, n)
         if voc.images > n:  # saved after entries a power cut took (entries not synced): learn all again
             log.warning("%s: learned %d images, the map holds %d: learning the map's entries again", wp,
                         voc.images, n)
             voc.forget()
+        lost: list[int] = []
         for eid in range(voc.images, n):  # added after the last save: learn them again, in order
             d = self._stored_of(eid)
-            if d is None:
-                raise DatabaseError(f"{self._where()}: entry {eid} keeps no descriptors, the incremental "
-                                    f"vocabulary cannot learn it again ({wp} is behind)")
+            if d is None:  # removed (or saved without descriptors): counted, its words are gone
+                lost.append(eid)
+                d = np.zeros((0, voc.kind.size), voc.kind.dtype)
             voc.replay(d)
-        if not self.readonly and voc.images > 0 and voc.due():
-            self._save_words()
+        if lost:
+            log.warning("%s: %d entries (first %d) keep no descriptors: the words are learned again without "
+                        "theirs", wp, len(lost), lost[0])
+        if not self.readonly:
+            if voc.images == 0:
+                wp.unlink(missing_ok=True)  # words ahead of an empty map: nothing to keep
+            elif voc.due():
+                self._save_words()
 
     def _read_words(self, voc: IncrementalVocabulary, wp: Path, n: int) -> None:
         """The saved words into ``voc`` (a new map, or one whose words file is gone: none)."""
@@ -541,12 +558,34 @@ class Database:
             raise DatabaseError(str(exc)) from None
 
     def _stored_of(self, eid: int) -> np.ndarray | None:
-        """Entry ``eid``'s descriptors as stored, or None (removed, or kept without them)."""
+        """Entry ``eid``'s descriptors as stored, or None (removed, missing, or kept without them)."""
         alive = self.index.alive()
         if alive is not None and not alive[eid]:
             return None
         what = f"{self._where()}: entry {eid}"
-        return _stored_descriptors(unpack_arrays(self._row(eid, "payload")[0], what), what)
+        try:
+            return _stored_descriptors(unpack_arrays(self._row(eid, "payload")[0], what), what)
+        except (DatabaseError, InputError):
+            return None
+
+    def resync_words(self) -> None:
+        """Bring an incremental vocabulary back to this map's entries (after an add that failed
+        once the vocabulary had learned its frame): the saved words, and the entries after them
+        learned again."""
+        voc = self._incremental
+        if voc is None:
+            return
+        voc.forget()
+        if self.path is not None and self._schema.uuid is not None:
+            self._catch_up(voc, len(self))
+            return
+        for eid in range(len(self)):  # a memory map: its entries, as held
+            try:
+                feats = self.entry(eid).features
+                d = feats.descriptors
+            except (DatabaseError, InputError):
+                d = np.zeros((0, voc.kind.size), voc.kind.dtype)
+            voc.replay(d)
 
     def _save_words(self, final: bool = False) -> None:
         voc = self._incremental
@@ -554,11 +593,27 @@ class Database:
                 or voc.images != len(self) or not (voc.due() or (final and voc.unsaved))):
             return
         try:
-            voc.save(words_path(self.path), self._schema.uuid)
+            voc.save(words_path(self.path), self._schema.uuid, images=len(self))
         except OSError as exc:
             log.error("%s: cannot save the incremental vocabulary's words (%s); they are learned again "
                       "from the entries at the next open", words_path(self.path), exc)
             raise DatabaseError(f"{words_path(self.path)}: cannot write ({exc})") from None
+
+    def _check_learned(self, features: Features) -> None:
+        """An incremental vocabulary's map stores exactly the image its vocabulary learned last.
+
+        Raises:
+            InputError: not learned once just before, or learned in another form than stored.
+        """
+        voc = self._incremental
+        if voc is None:
+            return
+        if voc.images != len(self) + 1:
+            raise InputError(f"the incremental vocabulary has learned {voc.images} images for entry "
+                             f"{len(self)}: call its learn() once per entry, just before add()")
+        if not voc.learned_last(self.stored_form(features.descriptors)):
+            raise InputError("the incremental vocabulary learned other descriptors than those stored: learn "
+                             "db.stored_form(descriptors), the form a reopened map learns them again from")
 
     def stored_form(self, descriptors: np.ndarray) -> np.ndarray:
         """``descriptors`` as an entry of this map gives them back (float ones through the
@@ -637,9 +692,7 @@ class Database:
         n = len(features)
         if len(fvec) != n:
             raise InputError(f"feature vector has {len(fvec)} nodes for {n} features")
-        if self._incremental is not None and self._incremental.images != len(self) + 1:
-            raise InputError(f"the incremental vocabulary has learned {self._incremental.images} images for "
-                             f"entry {len(self)}: call its learn() once per entry, just before add()")
+        self._check_learned(features)
         if bow.words.size and (bow.words[0] < 0 or bow.words[-1] >= self.vocabulary.n_words):
             raise InputError(f"BoW word ids outside this vocabulary's 0..{self.vocabulary.n_words - 1}")
         if fvec.levels_up != self.vocabulary.levels_up:
@@ -682,7 +735,8 @@ class Database:
                 self._held[eid] = held
             index.add(bow.words, weights, sess)
             if self._incremental is not None and self._incremental.due():
-                self._save_words()
+                with contextlib.suppress(DatabaseError):  # logged; the entry is stored, the words follow
+                    self._save_words()
         return eid
 
     def _payload(

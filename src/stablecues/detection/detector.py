@@ -677,10 +677,16 @@ class LoopDetector:
         if vlad is not None:
             arrays["vlad"] = vlad.astype(np.float16)
         bow, fvec = prep.bow, prep.fvec
+        learned = isinstance(self.vocabulary, IncrementalVocabulary)
         if isinstance(self.vocabulary, IncrementalVocabulary):  # its words grow with the map
             bow, fvec = self.vocabulary.learn(self.db.stored_form(prep.features.descriptors), prep.weights)
-        self.db.add(bow, fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
-                    pose=frame.pose, meta=meta, arrays=arrays or None)
+        try:
+            self.db.add(bow, fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
+                        pose=frame.pose, meta=meta, arrays=arrays or None)
+        except BaseException:
+            if learned:  # the words learned this frame, the map did not take it: back to the map's
+                self.db.resync_words()
+            raise
         if self._vlad is not None and vlad is not None:
             self._vlad.append(vlad, entry=len(self.db) - 1)
         self._timestamps.append(float(frame.timestamp))

@@ -268,6 +268,12 @@ def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray
     return np.clip(np.rint(np.sqrt(np.maximum(sq, 0.0)) * 128.0), 0, 256).astype(np.int64)
 
 
+def _one_node(fvec: FeatureVector) -> bool:
+    """Whether every feature sits under one and the same node (an incremental vocabulary's)."""
+    nodes = fvec.nodes
+    return bool(nodes.size) and int(nodes.min()) >= 0 and int(nodes.min()) == int(nodes.max())
+
+
 def _best_two_indexed(
     query: Features, candidate: Features, query_fvec: FeatureVector, candidate_fvec: FeatureVector,
     cross_check: bool, engine: str,
@@ -349,6 +355,10 @@ def match_features(
 
     back: np.ndarray | None = None  # with cross_check: each candidate feature's nearest query feature
     mutual = np.ones(n, bool)
+    if (query_fvec is not None and candidate_fvec is not None
+            and DescriptorKind.of(query.descriptors, "query descriptors").kind == "float"
+            and _one_node(query_fvec) and _one_node(candidate_fvec)):
+        query_fvec = candidate_fvec = None  # every pair compared: brute force, not N x M pair lists
     if query_fvec is not None and candidate_fvec is not None:
         best_j, best, second, has, back = _best_two_indexed(query, candidate, query_fvec, candidate_fvec,
                                                             cross_check, engine)

@@ -6,10 +6,10 @@ vector, the map's inverse index and scoring are the same. The words are the map'
 descriptors:
 
 * **Made and merged by distance.** When an image is added (:meth:`IncrementalVocabulary.learn`),
-  each descriptor joins the nearest word within the merge threshold (Hamming bits for binary
-  descriptors, Euclidean distance for float ones); a descriptor with none becomes a new word
+  each descriptor joins the nearest live word within the merge threshold (Hamming bits for binary
+  descriptors, Euclidean distance for float ones); a descriptor that joins none becomes a new word
   (a *leader*: a word is the descriptor that made it, so a word never moves and a stored BoW
-  vector keeps its meaning). Descriptors are taken in order, so two of one image can share a word.
+  vector keeps its meaning). Two descriptors of one image that join no older word make two words.
 * **Found through an index kept as words arrive.** Locality-sensitive hash tables
   (:mod:`._incremental`): a new word is linked into one bucket per table, O(tables), never a
   rebuild; a descriptor's candidates are the words sharing a bucket with it.
@@ -34,6 +34,7 @@ run's (learning is deterministic).
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import os
 import struct
@@ -50,6 +51,8 @@ from ..errors import ConfigError, InputError, VocabularyError
 from ..types import BowVector, DescriptorKind, FeatureVector
 from ..vocabulary.scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
 from .descriptors import as_words, check_descriptors
+
+log = logging.getLogger(__name__)
 
 __all__ = ["INCREMENTAL", "IncrementalInfo", "IncrementalVocabulary", "words_path"]
 
@@ -147,9 +150,18 @@ class IncrementalVocabulary:
         if not 1 <= self.tables <= 64 or not 1 <= self.bits <= 24 or (width and self.bits > width):
             raise ConfigError(f"incremental vocabulary: {self.tables} tables of {self.bits} bits: "
                               "expected 1-64 tables of 1-24 bits")
-        if not 1 <= self.id_space <= (1 << 31) - 1 or self.purge_after < 0 or self.save_every < 1:
-            raise ConfigError("incremental vocabulary: id_space must be 1..2^31-1, purge_after >= 0, "
-                              "save_every >= 1")
+        if self.tables << self.bits > 1 << 24:
+            raise ConfigError(f"incremental vocabulary: {self.tables} tables of {self.bits} bits make "
+                              f"{self.tables << self.bits} buckets; at most 2^24")
+        space_ok = 1 <= self.id_space <= (1 << 31) // self.tables - 1  # page numbers are int32
+        if not space_ok or self.purge_after < 0 or self.save_every < 1:
+            raise ConfigError("incremental vocabulary: id_space must be 1..2^31 / tables - 1, "
+                              "purge_after >= 0, save_every >= 1")
+        if not 0 <= self.seed < 1 << 63:
+            raise ConfigError(f"incremental vocabulary: seed {seed!r} must be in 0..2^63-1")
+        if kind.size > 4096:
+            raise ConfigError(f"incremental vocabulary: descriptors of {kind.size} bytes or dimensions; "
+                              "at most 4096")
         rng = np.random.default_rng(self.seed)
         self._float = kind.kind == "float"
         if self._float:
@@ -172,6 +184,11 @@ class IncrementalVocabulary:
         self._df = np.zeros(0, np.int32)
         self._last = np.zeros(0, np.int32)
         self._alive = np.zeros(0, np.uint8)
+        # each word's keys as made when it was learned: relinking and a reopen reuse them, never
+        # recomputing a float projection in another batch shape (BLAS may round it otherwise)
+        self._wkeys = np.zeros((0, self.tables), np.int32)
+        self._id_space_said = False
+        self._last_learned: np.ndarray | None = None
         self._pool = _kernel_module().pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._dead_linked = 0
         self._since_save = 0
@@ -267,6 +284,7 @@ class IncrementalVocabulary:
             self._df = _grow(self._df, (alloc,))
             self._last = _grow(self._last, (alloc,))
             self._alive = _grow(self._alive, (alloc,))
+            self._wkeys = _grow(self._wkeys, (alloc, self.tables))
             self._alloc = alloc
         if not pool:
             return
@@ -285,8 +303,9 @@ class IncrementalVocabulary:
 
     def _assign(self, d: np.ndarray) -> np.ndarray:
         """Each descriptor's word among the live ones (-1: none within the threshold); the last
-        answer again when nothing was learned since and ``d`` holds the same descriptors (the
-        image a detector queried with is the image it then adds)."""
+        answer again when nothing was learned since and ``d`` holds the same descriptors (a
+        binary image a detector queried with is the image it then adds; float descriptors are
+        learned in their int8-stored form, so their add searches again)."""
         return self._assigned(d)[0]
 
     def _assigned(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -318,8 +337,15 @@ class IncrementalVocabulary:
         self._room(int(todo.size))
         pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
         q = np.ascontiguousarray(d, np.float32) if self._float else as_words(d)
+        first = self._made
         self._made = _kernels().grow(todo, keys, q, *pl, self._words, self._alive, self._made, self.id_space,
                                      out)
+        made = todo[out[todo] >= first]
+        self._wkeys[out[made]] = keys[made]
+        if self._made >= self.id_space and not self._id_space_said:
+            self._id_space_said = True
+            log.warning("incremental vocabulary: all %d word ids are used; descriptors that join no word get "
+                        "none from now on", self.id_space)
         return out
 
     def _vector(self, words: np.ndarray, fw: np.ndarray | None, images: int) -> BowVector:
@@ -380,7 +406,14 @@ class IncrementalVocabulary:
         often than a trained tree's coarse node; ``bench_incremental.py``)."""
         return FeatureVector(np.zeros(words.shape[0], np.int32), 0)
 
+    def learned_last(self, descriptors: np.ndarray) -> bool:
+        """Whether ``descriptors`` are what the last :meth:`learn` took (a map checks that the
+        image it stores is the image learned, in the form it stores)."""
+        last = self._last_learned
+        return last is not None and np.array_equal(last, descriptors)
+
     def _learn(self, descriptors: np.ndarray) -> np.ndarray:
+        self._last_learned = np.array(descriptors)
         if self._float and self._center is None and descriptors.shape[0]:
             self._center = np.asarray(descriptors, np.float64).mean(axis=0)
             self._version += 1  # keys made before are stale
@@ -421,10 +454,10 @@ class IncrementalVocabulary:
                               self._dtype)
         k = _kernels()
         pl = [self._pool[a] for a in mod.POOL_ARGS]
-        for lo in range(0, live, 65536):  # keys in chunks: a bounded temporary
+        for lo in range(0, live, 65536):  # in chunks: a bounded temporary
             part = ids[lo: lo + 65536]
             rows = np.ascontiguousarray(self._words[part])
-            k.link(self._keys(self._descriptors_of(part)), part, rows, *pl)
+            k.link(self._wkeys[part].astype(np.int64), part, rows, *pl)
         self._dead_linked = 0
 
     def _descriptors_of(self, ids: np.ndarray) -> np.ndarray:
@@ -442,17 +475,26 @@ class IncrementalVocabulary:
         """Whether anything was learned since the last save or restore."""
         return self._since_save > 0
 
-    def save(self, path: str | Path, map_id: bytes) -> None:
+    def save(self, path: str | Path, map_id: bytes, images: int | None = None) -> bool:
         """Write the words to ``path`` atomically (a temporary file, fsynced, renamed over it).
 
         Args:
             map_id: the 16-byte id of the map they belong to (recorded and checked on restore).
+            images: write only if exactly this many images are learned (the map's entries, checked
+                under the vocabulary's lock: a frame learned by another thread meanwhile waits for
+                the next save).
+
+        Returns:
+            whether the file was written.
         """
         p = Path(path)
         with self._lock:
+            if images is not None and images != self._images:
+                return False
             n = self._made
             body = [np.ascontiguousarray(self._words[:n]).tobytes(), self._df[:n].astype("<i4").tobytes(),
-                    self._last[:n].astype("<i4").tobytes(), self._alive[:n].tobytes()]
+                    self._last[:n].astype("<i4").tobytes(), self._alive[:n].tobytes(),
+                    self._wkeys[:n].astype("<i4").tobytes()]
             if self._float:  # the keys' centre (zeros until the first image)
                 centre = self._center if self._center is not None else np.zeros(self.kind.size)
                 body.append(centre.astype("<f8").tobytes())
@@ -475,6 +517,7 @@ class IncrementalVocabulary:
             os.replace(tmp, p)
             _fsync_dir(p.parent)
             self._since_save = 0
+            return True
 
     @classmethod
     def of_words_file(cls, path: str | Path) -> IncrementalVocabulary:
@@ -485,6 +528,8 @@ class IncrementalVocabulary:
             VocabularyError: not a words file, or settings out of range.
         """
         h = _read_header(Path(path))
+        if not (1 <= h.tables <= 64 and 1 <= h.bits <= 24 and h.tables << h.bits <= 1 << 24):
+            raise VocabularyError(f"{path}: {h.tables} tables of {h.bits} bits (corrupt file)")
         try:
             kind = DescriptorKind("float" if h.is_float else "binary", h.dim)
             return cls(kind, threshold=h.threshold, tables=h.tables, bits=h.bits, id_space=h.id_space,
@@ -519,7 +564,7 @@ class IncrementalVocabulary:
             raise VocabularyError(f"{p}: {n} words in an id space of {h.id_space}")
         if h.has_centre not in (0, 1) or (h.has_centre and not h.is_float):
             raise VocabularyError(f"{p}: a centre flag of {h.has_centre} (corrupt file)")
-        expected = _HEADER_SIZE + n * (width * item + 9) + (8 * dim if h.is_float else 0)
+        expected = _HEADER_SIZE + n * (width * item + 9 + 4 * self.tables) + (8 * dim if h.is_float else 0)
         raw = _body(p, expected)
         if zlib.crc32(raw) != h.crc:
             raise VocabularyError(f"{p}: the words' checksum does not match (corrupt file)")
@@ -527,7 +572,11 @@ class IncrementalVocabulary:
         alive = np.frombuffer(raw, np.uint8, n, a + 8 * n)
         if alive.size and int(alive.max()) > 1:
             raise VocabularyError(f"{p}: live flags other than 0 and 1 (corrupt file)")
-        centre = np.frombuffer(raw, "<f8", dim, a + 9 * n).astype(np.float64) if h.has_centre else None
+        wkeys = np.frombuffer(raw, "<i4", n * self.tables, a + 9 * n).reshape(n, self.tables)
+        if n and (int(wkeys.min()) < 0 or int(wkeys.max()) >= 1 << self.bits):
+            raise VocabularyError(f"{p}: word keys outside 0..2^{self.bits}-1 (corrupt file)")
+        c0 = a + 9 * n + 4 * n * self.tables
+        centre = np.frombuffer(raw, "<f8", dim, c0).astype(np.float64) if h.has_centre else None
         if centre is not None and not np.isfinite(centre).all():
             raise VocabularyError(f"{p}: the keys' centre is not finite (corrupt file)")
         with self._lock:
@@ -537,6 +586,7 @@ class IncrementalVocabulary:
             self._df[:n] = np.frombuffer(raw, "<i4", n, a)
             self._last[:n] = np.frombuffer(raw, "<i4", n, a + 4 * n)
             self._alive[:n] = alive
+            self._wkeys[:n] = wkeys
             self._center = centre
             self._made, self._images = n, int(h.images)
             self._relink()
@@ -590,6 +640,9 @@ def _read_header(p: Path) -> _Header:
     h = _Header(*_HEADER.unpack(fields)[1:])
     if h.version != _VERSION:
         raise VocabularyError(f"{p}: words file version {h.version}, expected {_VERSION}")
+    if h.is_float not in (0, 1) or h.has_centre not in (0, 1) or not 1 <= h.dim <= 4096:
+        raise VocabularyError(f"{p}: a header of kind {h.is_float}, centre flag {h.has_centre} and {h.dim} "
+                              "bytes or dimensions (corrupt file)")
     return h
 
 
