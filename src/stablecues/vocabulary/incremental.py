@@ -43,13 +43,13 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
-from typing import Any, Literal, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import ConfigError, InputError, VocabularyError
 from ..types import BowVector, DescriptorKind, FeatureVector
-from ..vocabulary.scoring import Scoring, Weighting, normalise, scoring_name, weighting_name
+from ..vocabulary.scoring import Scoring, Weighting, normalise
 from .descriptors import as_words, check_descriptors
 
 log = logging.getLogger(__name__)
@@ -689,13 +689,3 @@ def _kernel_module() -> ModuleType:
     from . import _incremental
 
     return _incremental
-
-
-def describe(kind: Literal["binary", "float"]) -> dict[str, Any]:
-    """The default settings for descriptors of ``kind`` (for ``vocab info incremental``)."""
-    return dict(DEFAULTS[kind])
-
-
-# names of the scoring and weighting, for the same table as a trained vocabulary's info
-SCORING_NAME = scoring_name(Scoring.L1)
-WEIGHTING_NAME = weighting_name(Weighting.TF_IDF)
