@@ -107,9 +107,11 @@ def check_words(db: Database) -> None:
     got = db.vocabulary
     assert isinstance(got, IncrementalVocabulary)
     assert (got.images, got.words_made, got.words_live) == (ref.images, ref.words_made, ref.words_live)
-    n = ref.words_made
+    n = ref._made  # the ids used
+    assert got._made == n and got._cursor == ref._cursor
     assert np.array_equal(got._words[:n], ref._words[:n]) and np.array_equal(got._df[:n], ref._df[:n])
     assert np.array_equal(got._alive[:n], ref._alive[:n]) and np.array_equal(got._last[:n], ref._last[:n])
+    assert np.array_equal(got._wkeys[:n], ref._wkeys[:n])
 
 
 def kill_rounds(voc: Vocabulary | None, tmp_path: Path, mode: str, compact: bool, rounds: int) -> int:

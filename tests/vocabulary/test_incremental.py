@@ -47,11 +47,11 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def state(voc: IncrementalVocabulary) -> str:
     """A digest of everything that decides the words."""
-    n = voc.words_made
+    n = voc._made
     h = hashlib.sha256()
-    for arr in (voc._words[:n], voc._df[:n], voc._last[:n], voc._alive[:n]):
+    for arr in (voc._words[:n], voc._df[:n], voc._last[:n], voc._alive[:n], voc._wkeys[:n]):
         h.update(np.ascontiguousarray(arr).tobytes())
-    h.update(f"{voc.images}".encode())
+    h.update(f"{voc.images} {voc.words_made} {voc.words_live} {voc._cursor}".encode())
     return h.hexdigest()
 
 
@@ -133,16 +133,79 @@ def test_compiled_kernels_equal_plain_python(orb_frames: list[np.ndarray],
     floats = [rng.normal(size=(60, 64)).astype(np.float32) for _ in range(3)]
     floats = [f / np.linalg.norm(f, axis=1, keepdims=True) for f in floats]
     floats.append(floats[0] + 0.01 * rng.normal(size=floats[0].shape).astype(np.float32))
-    for kind, images, thr in ((ORB, binary, 64), (XFEAT, floats, 0.7)):
+    reused = [flip(d, 100, rng) for _ in range(5) for d in binary]  # 20 unrelated images: ids given again
+    for kind, images, thr, purge, space in ((ORB, binary, 64, 0, 1 << 22), (XFEAT, floats, 0.7, 0, 1 << 22),
+                                            (ORB, reused, 64, 1, 150)):
         digests = []
         for plain in (False, True):
             if plain:
                 monkeypatch.setattr(_incremental, "kernels", _incremental.plain)
-            voc = IncrementalVocabulary(kind, threshold=thr, purge_after=0)
+            voc = IncrementalVocabulary(kind, threshold=thr, purge_after=purge, id_space=space)
             bows = [voc.learn(d)[0] for d in images]
             digests.append((state(voc), [b.words.tolist() for b in bows]))
             monkeypatch.undo()
         assert digests[0] == digests[1]
+        assert voc.words_made > voc._made or space > 150
+
+
+def test_the_words_do_not_depend_on_how_the_index_is_laid_out(orb_frames: list[np.ndarray],
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """The index rebuilt after every image, or never (every new word in an overflow page, every
+    purged one left in), or with no room to spare in its runs: the same words, image for image."""
+    from stablecues.vocabulary import incremental
+
+    rng = np.random.default_rng(5)
+    images = [flip(orb_frames[k % 12], 6 * (k // 12), rng) for k in range(40)]
+    digests = []
+    for mode in ("every image", "never", "no slack"):
+        monkeypatch.setattr(incremental, "FREEZE_MIN", 0 if mode == "every image" else 1 << 40)
+        monkeypatch.setattr(incremental, "FREEZE_SHARE", 1 << 40)
+        if mode == "no slack":
+            monkeypatch.setattr(_incremental, "SLACK_MIN", 0)
+            monkeypatch.setattr(_incremental, "SLACK_SHIFT", 60)
+        voc = IncrementalVocabulary(ORB, purge_after=4, id_space=9000)
+        bows = [voc.learn(d)[0].words.tolist() for d in images]
+        if mode == "never":
+            assert voc._indexed == 0 and voc._dead_linked > 0
+        digests.append((state(voc), bows))
+        monkeypatch.undo()
+    assert digests[0] == digests[1] == digests[2]
+
+
+def test_ids_of_purged_words_are_given_again_once_all_are_used(orb_frames: list[np.ndarray],
+                                                               tmp_path: Path,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """A small id space: once every id is used, new words take the ids of purged ones (said
+    once in the log), a slot left by the old word never answers for the new one, and a map
+    reopened in the middle continues with the same words."""
+    rng = np.random.default_rng(6)
+    images = [flip(orb_frames[k % 12], 3 * (k // 12), rng) for k in range(48)]
+    space = 3000
+    whole = IncrementalVocabulary(ORB, purge_after=2, id_space=space)
+    with caplog.at_level("WARNING"):
+        for d in images:
+            whole.learn(d)
+    assert whole.words_made > space and whole._made == space  # ids were given again
+    assert sum("ids of purged words" in r.message for r in caplog.records) == 1
+    assert whole.words_live == int(whole._alive.sum()) <= space
+    # no slot left by a purged word answers for the new word that took its id: every word found is
+    # within the threshold of the word as it is now
+    q = images[-1]
+    words = whole._assign(q)
+    found = words >= 0
+    assert found.sum() > 100
+    assert (hamming(q[found], whole._descriptors_of(words[found])) <= whole.threshold).all()
+    # reopened halfway (the words saved and restored), it continues as the uninterrupted run
+    half = IncrementalVocabulary(ORB, purge_after=2, id_space=space)
+    for d in images[:30]:
+        half.learn(d)
+    half.save(tmp_path / "w.words", bytes(16))
+    again = IncrementalVocabulary(ORB, purge_after=2, id_space=space)
+    again.restore(tmp_path / "w.words", bytes(16))
+    assert state(again) == state(half)
+    for d in images[30:]:
+        again.learn(d)
+    assert state(again) == state(whole)
 
 
 def test_same_frames_same_words_in_a_fresh_process(orb_frames: list[np.ndarray], tmp_path: Path) -> None:

@@ -11,21 +11,27 @@ descriptors:
   (a *leader*: a word is the descriptor that made it, so a word never moves and a stored BoW
   vector keeps its meaning). Two descriptors of one image that join no older word make two words.
 * **Found through an index kept as words arrive.** Locality-sensitive hash tables
-  (:mod:`._incremental`): a new word is linked into one bucket per table, O(tables), never a
-  rebuild; a descriptor's candidates are the words sharing a bucket with it.
+  (:mod:`._incremental`): a descriptor's candidates are the words sharing a bucket with it. Each
+  bucket is one contiguous run of slots with room to spare; a new word goes into its bucket's
+  run in every table, O(tables), or into an overflow page where the run is full. The runs are
+  rebuilt from the live words (O(live words x tables)) once the words purged and those that
+  overflowed since reach an eighth of those they were built with: amortised, a bounded number
+  of copies per word. The layout changes how fast a word is found, never which.
 * **Purged when they do not come back.** A word seen in a single image and not seen again for
   ``purge_after`` images is dropped (iBoW-LCD keeps the words that recur; a word made by noise
-  or a passing object never does). Its id is not reused; the old images' postings of it stay
-  inert.
+  or a passing object never does). The old image's posting of it stays, inert.
 * **Weights kept current.** A word's IDF is ``log(1 + N / n_w)`` (N images learned, n_w of them
   with the word), computed at each transform: queries weigh words by the map as it is now;
   a stored vector keeps the weights of the moment it was added, as in iBoW-LCD.
 
 Word ids run from 0 up to :attr:`IncrementalVocabulary.n_words`, a fixed id space (the map's
-index is sized by it); once it is used up, descriptors that match no word get none.
+index is sized by it). Once every id has been used, new words take the ids of purged ones (in
+id order, wrapping around): the one old image that held a purged word keeps its posting, which
+now points at the new word (one feature's weight in that image; with ORB on a patrol of real
+frames, the 2^22 ids last about 38,000 images).
 
-The words live beside the map (``MAP.words``, :meth:`save`/:meth:`restore`): written whole
-(atomically) on close and every ``save_every`` images, and brought up to date on reopen by
+The words live beside the map (``MAP.words``, :meth:`save`/:meth:`restore`): the live words,
+written whole (atomically) on close and every ``save_every`` images, and brought up to date on reopen by
 learning again the images added after it from the map's own entries, so that a writer killed
 between two saves loses no acknowledged image and the words are the same as an uninterrupted
 run's (learning is deterministic).
@@ -40,6 +46,7 @@ import os
 import struct
 import threading
 import zlib
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
@@ -60,10 +67,15 @@ __all__ = ["INCREMENTAL", "IncrementalInfo", "IncrementalVocabulary", "words_pat
 INCREMENTAL = "incremental"
 
 _MAGIC = b"SCVW"
-_VERSION = 1
-_HEADER = struct.Struct("<4sHBBIHHdQQQQQ16sI")  # .. body CRC; the header's own CRC follows
+_VERSION = 2  # 2: live words only in the file; ids of purged words reused once all are used
+_HEADER = struct.Struct("<4sHBBIHHdQQQQQQQQ16sI")  # .. body CRC; the header's own CRC follows
 _HEADER_SIZE = 128
 _NONE = -1
+#: the index is rebuilt once the words purged and those that overflowed their runs since are this
+#: share (1/FREEZE_SHARE) of those it was built with, or FREEZE_MIN: each word is copied a bounded
+#: number of times
+FREEZE_SHARE = 8
+FREEZE_MIN = 4096
 
 
 @dataclass(frozen=True)
@@ -175,8 +187,14 @@ class IncrementalVocabulary:
         self._reset()
 
     def _reset(self) -> None:
-        self._made = 0  # word ids used so far
+        self._made = 0  # word ids used so far (the high-water mark; ids below it are reused once it
+        # reaches the id space)
+        self._made_total = 0  # words ever made
+        self._live = 0  # live words
+        self._cursor = 0  # where the search for the next free id starts, once all were used
         self._images = 0  # images learned
+        # (image, ids of the words it made): the words that may be purged, oldest first
+        self._fifo: deque[tuple[int, np.ndarray]] = deque()
         self._alloc = 0
         width = self.kind.size if self._float else as_words(np.zeros((1, self.kind.size), np.uint8)).shape[1]
         self._dtype = np.float32 if self._float else np.uint64
@@ -184,13 +202,17 @@ class IncrementalVocabulary:
         self._df = np.zeros(0, np.int32)
         self._last = np.zeros(0, np.int32)
         self._alive = np.zeros(0, np.uint8)
-        # each word's keys as made when it was learned: relinking and a reopen reuse them, never
+        # each word's keys as made when it was learned: a freeze and a reopen reuse them, never
         # recomputing a float projection in another batch shape (BLAS may round it otherwise)
         self._wkeys = np.zeros((0, self.tables), np.int32)
         self._id_space_said = False
         self._last_learned: np.ndarray | None = None
-        self._pool = _kernel_module().pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
-        self._dead_linked = 0
+        mod = _kernel_module()
+        self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
+        self._runs = mod.runs(self.tables, self.bits, np.zeros(self.tables << self.bits), width, self._dtype)
+        self._indexed = 0  # live words when the runs were made
+        self._overflow = 0  # slots in overflow pages since
+        self._dead_linked = 0  # purged words still in the index
         self._since_save = 0
         # float keys: signs of projections of the descriptors less this centre, the mean of the
         # first image learned (learned descriptors sit in a cone: planes through the origin put
@@ -228,19 +250,20 @@ class IncrementalVocabulary:
 
     @property
     def words_made(self) -> int:
-        return self._made
+        """Words made so far (purged ones included)."""
+        return self._made_total
 
     @property
     def words_live(self) -> int:
-        return int(self._alive[: self._made].sum())
+        return self._live
 
     def info(self) -> IncrementalInfo:
-        return IncrementalInfo(str(self.kind), self._images, self._made, self.words_live, self.id_space,
+        return IncrementalInfo(str(self.kind), self._images, self._made_total, self._live, self.id_space,
                                self.threshold, self.tables, self.bits, self.purge_after, self.fingerprint)
 
     def __repr__(self) -> str:
         return (f"IncrementalVocabulary({self.kind}, threshold={self.threshold:g}, images={self._images}, "
-                f"words={self.words_live} live of {self._made})")
+                f"words={self._live} live of {self._made_total} made)")
 
     def warm_up(self) -> str:
         """Load (or compile, the first time on a machine) the kernels now."""
@@ -274,24 +297,22 @@ class IncrementalVocabulary:
         _kernels().keys_binary(as_words(d), self._positions, out)
         return out
 
-    def _room(self, more: int, pool: bool = True) -> None:
-        """Room for ``more`` new words: their rows, and (``pool``) the page pool's worst case
-        (each of them opening a page of the largest size in every table)."""
-        need = self._made + more
+    def _room(self, rows: int, words: int) -> None:
+        """Room for ``words`` new words, ``rows`` of them with new ids: their rows, and the page
+        pool's worst case (each of them opening a page of the largest size in every table)."""
+        need = self._made + rows
         if need > self._alloc:
-            alloc = max(need, 2 * self._alloc, 1024)
+            alloc = min(max(need, 2 * self._alloc, 1024), self.id_space)
             self._words = _grow(self._words, (alloc, self._words.shape[1]))
             self._df = _grow(self._df, (alloc,))
             self._last = _grow(self._last, (alloc,))
             self._alive = _grow(self._alive, (alloc,))
             self._wkeys = _grow(self._wkeys, (alloc, self.tables))
             self._alloc = alloc
-        if not pool:
-            return
         pl = self._pool
         pages, slots = (int(v) for v in pl["state"])
         mod = _kernel_module()
-        want_pages, want_slots = pages + self.tables * more, slots + self.tables * more * mod.MAX_PAGE
+        want_pages, want_slots = pages + self.tables * words, slots + self.tables * words * mod.MAX_PAGE
         if want_pages > pl["pg_next"].shape[0]:
             size = max(want_pages, 2 * pl["pg_next"].shape[0])
             for name, fill in (("pg_next", mod.NONE), ("pg_start", 0), ("pg_cap", 0), ("pg_fill", 0)):
@@ -300,6 +321,27 @@ class IncrementalVocabulary:
             size = max(want_slots, 2 * pl["slot_ids"].shape[0])
             pl["slot_ids"] = _grow(pl["slot_ids"], (size,))
             pl["slot_desc"] = _grow(pl["slot_desc"], (size, pl["slot_desc"].shape[1]))
+
+    def _new_ids(self, need: int) -> np.ndarray:
+        """Ids for ``need`` new words: unused ones first, then (all used) the ids of purged
+        words, in id order from where the last search stopped, wrapping around (fewer when
+        fewer are free)."""
+        fresh = min(need, self.id_space - self._made)
+        parts = [np.arange(self._made, self._made + fresh, dtype=np.int32)]
+        rest, n = need - fresh, self.id_space
+        if rest and self._made >= n:
+            c, scanned = self._cursor, 0
+            while rest and scanned < n:
+                hi = min(c + max(4 * rest, 4096), n, c + n - scanned)  # each id looked at once
+                take = (np.flatnonzero(self._alive[c:hi] == 0)[:rest] + c).astype(np.int32)
+                parts.append(take)
+                rest -= int(take.size)
+                scanned += hi - c
+                c = int(take[-1]) + 1 if rest == 0 else hi
+                if c >= n:
+                    c = 0
+            self._cursor = c
+        return np.concatenate(parts)
 
     def _assign(self, d: np.ndarray) -> np.ndarray:
         """Each descriptor's word among the live ones (-1: none within the threshold); the last
@@ -317,12 +359,14 @@ class IncrementalVocabulary:
         out = np.full(n, _NONE, np.int32)
         keys = self._keys(d)
         if n and self._made:
-            pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
+            mod = _kernel_module()
+            pl = [self._runs[a] for a in mod.RUN_ARGS] + [self._pool[a] for a in mod.POOL_ARGS]
             if self._float:
                 q = np.ascontiguousarray(d, np.float32)
-                _kernels().assign_float(keys, q, *pl, self._alive, self.threshold ** 2, out)
+                _kernels().assign_float(keys, q, *pl, self._alive, self._words, self.threshold ** 2, out)
             else:
-                _kernels().assign_binary(keys, as_words(d), *pl, self._alive, int(self.threshold), out)
+                thr = int(self.threshold)
+                _kernels().assign_binary(keys, as_words(d), *pl, self._alive, self._words, thr, out)
         out.flags.writeable = False
         self._cache = (np.array(d), self._version, out, keys)  # a copy: the caller may reuse its array
         return out, keys
@@ -334,18 +378,26 @@ class IncrementalVocabulary:
         out = words.copy()
         if todo.size == 0:
             return out
-        self._room(int(todo.size))
-        pl = [self._pool[a] for a in _kernel_module().POOL_ARGS]
+        ids = self._new_ids(int(todo.size))
+        fresh = int((ids >= self._made).sum())
+        self._room(fresh, int(ids.size))
+        mod = _kernel_module()
+        pl = [self._runs[a] for a in mod.RUN_ARGS] + [self._pool[a] for a in mod.POOL_ARGS]
         q = np.ascontiguousarray(d, np.float32) if self._float else as_words(d)
-        first = self._made
-        self._made = _kernels().grow(todo, keys, q, *pl, self._words, self._alive, self._made, self.id_space,
-                                     out)
-        made = todo[out[todo] >= first]
-        self._wkeys[out[made]] = keys[made]
-        if self._made >= self.id_space and not self._id_space_said:
+        reused = ids.size - fresh
+        self._overflow += _kernels().grow(todo, ids, keys, q, *pl, self._words, self._alive, out)
+        self._wkeys[ids] = keys[todo[: ids.size]]
+        self._df[ids] = 0
+        self._made += fresh
+        self._made_total += int(ids.size)
+        self._live += int(ids.size)
+        self._fifo.append((self._images, ids))
+        if (reused or ids.size < todo.size) and not self._id_space_said:
             self._id_space_said = True
-            log.warning("incremental vocabulary: all %d word ids are used; descriptors that join no word get "
-                        "none from now on", self.id_space)
+            log.warning("incremental vocabulary: all %d word ids are used; the ids of purged words are given "
+                        "to new words from now on (the one old image that held each keeps a posting of it)%s",
+                        self.id_space, "" if ids.size == todo.size else
+                        "; with none free, descriptors that join no word get none")
         return out
 
     def _vector(self, words: np.ndarray, fw: np.ndarray | None, images: int) -> BowVector:
@@ -426,41 +478,45 @@ class IncrementalVocabulary:
         self._since_save += 1
         if self.purge_after and self._images % 16 == 0:
             self._purge()
+        if self._overflow // self.tables + self._dead_linked > max(self._indexed // FREEZE_SHARE, FREEZE_MIN):
+            self._freeze()
         return words
 
     def _purge(self) -> None:
-        """Drop the words seen in one image only and not since ``purge_after`` images; rebuild
-        the index once the dropped words still in it outnumber the live ones."""
-        n = self._made
-        old = self._last[:n] < self._images - self.purge_after
-        gone = (self._alive[:n] == 1) & (self._df[:n] == 1) & old
-        dropped = int(gone.sum())
-        if not dropped:
+        """Drop the words seen in one image only and not since ``purge_after`` images (they stay
+        in the index, skipped, until the next freeze; their rows are cleared)."""
+        cutoff = self._images - self.purge_after
+        parts = []
+        while self._fifo and self._fifo[0][0] < cutoff:
+            image, ids = self._fifo.popleft()
+            # still seen in that image only (a later image would have raised df; an id given
+            # again since belongs to a younger word, with a later `last`)
+            parts.append(ids[(self._alive[ids] == 1) & (self._df[ids] == 1) & (self._last[ids] == image)])
+        gone = np.concatenate(parts) if parts else np.zeros(0, np.int32)
+        if not gone.size:
             return
-        self._alive[:n][gone] = 0
+        self._alive[gone] = 0
+        for arr in (self._words, self._df, self._last, self._wkeys):
+            arr[gone] = 0
+        self._live -= int(gone.size)
         self._version += 1
-        self._dead_linked += dropped
-        if self._dead_linked > max(self.words_live, 4096):
-            self._relink()
+        self._dead_linked += int(gone.size)
 
-    def _relink(self) -> None:
-        """Rebuild the word index from the live words (ascending ids), in a new page pool."""
+    def _freeze(self) -> None:
+        """Rebuild the word index from the live words: each bucket one run with room to spare,
+        no overflow page, no purged word (the words found do not change: only how fast)."""
         mod = _kernel_module()
         ids = np.flatnonzero(self._alive[: self._made]).astype(np.int32)
-        live = int(ids.size)
-        # a bucket of m words takes at most m pages and 2m + FIRST_PAGE slots
-        self._pool = mod.pool(self.tables, self.bits, self.tables * live + 1024,
-                              self.tables * (2 * live + mod.FIRST_PAGE) + 4096, self._words.shape[1],
-                              self._dtype)
-        k = _kernels()
-        pl = [self._pool[a] for a in mod.POOL_ARGS]
-        for lo in range(0, live, 65536):  # in chunks: a bounded temporary
-            part = ids[lo: lo + 65536]
-            rows = np.ascontiguousarray(self._words[part])
-            k.link(self._wkeys[part].astype(np.int64), part, rows, *pl)
-        self._dead_linked = 0
+        flat = self._wkeys[ids].astype(np.int64) + (np.arange(self.tables, dtype=np.int64) << self.bits)
+        counts = np.bincount(flat.ravel(), minlength=self.tables << self.bits)
+        width = self._words.shape[1]
+        self._runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
+        _kernels().freeze(ids, self._wkeys, self._words, *(self._runs[a] for a in mod.RUN_ARGS))
+        self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
+        self._indexed, self._overflow, self._dead_linked = int(ids.size), 0, 0
 
     def _descriptors_of(self, ids: np.ndarray) -> np.ndarray:
+        """The descriptors of words ``ids`` (in the form they were given)."""
         if self._float:
             return self._words[ids]
         return np.ascontiguousarray(self._words[ids]).view(np.uint8)[:, : self.kind.size]
@@ -492,9 +548,10 @@ class IncrementalVocabulary:
             if images is not None and images != self._images:
                 return False
             n = self._made
-            body = [np.ascontiguousarray(self._words[:n]).tobytes(), self._df[:n].astype("<i4").tobytes(),
-                    self._last[:n].astype("<i4").tobytes(), self._alive[:n].tobytes(),
-                    self._wkeys[:n].astype("<i4").tobytes()]
+            ids = np.flatnonzero(self._alive[:n])  # the live words only: purged ones left no trace
+            body = [ids.astype("<i4").tobytes(), np.ascontiguousarray(self._words[ids]).tobytes(),
+                    self._df[ids].astype("<i4").tobytes(), self._last[ids].astype("<i4").tobytes(),
+                    self._wkeys[ids].astype("<i4").tobytes()]
             if self._float:  # the keys' centre (zeros until the first image)
                 centre = self._center if self._center is not None else np.zeros(self.kind.size)
                 body.append(centre.astype("<f8").tobytes())
@@ -504,7 +561,8 @@ class IncrementalVocabulary:
             centred = int(self._center is not None)
             fields = _HEADER.pack(_MAGIC, _VERSION, int(self._float), centred, self.kind.size, self.tables,
                                   self.bits, self.threshold, self.id_space, self.purge_after, self.seed,
-                                  n, self._images, map_id, crc)
+                                  n, self._images, int(ids.size), self._made_total, self._cursor, map_id,
+                                  crc)
             header = fields + struct.pack("<I", zlib.crc32(fields))
             header += bytes(_HEADER_SIZE - len(header))
             tmp = p.with_name(p.name + ".tmp")
@@ -557,39 +615,55 @@ class IncrementalVocabulary:
         if h.owner != map_id:
             raise VocabularyError(f"{p}: the words of another map (id {h.owner.hex()[:12]}..., this map is "
                                   f"{map_id.hex()[:12]}...)")
-        n, dim = h.n, h.dim
+        n, live, dim, tables = h.n, h.live, h.dim, self.tables
         width = self._words.shape[1]
         item = 4 if self._float else 8
-        if n > h.id_space:
-            raise VocabularyError(f"{p}: {n} words in an id space of {h.id_space}")
+        if not (live <= n <= h.id_space and n <= h.made_total and h.cursor <= n):
+            raise VocabularyError(f"{p}: {live} live words, ids used {n}, made {h.made_total}, next free id "
+                                  f"searched from {h.cursor}, in an id space of {h.id_space} (corrupt file)")
         if h.has_centre not in (0, 1) or (h.has_centre and not h.is_float):
             raise VocabularyError(f"{p}: a centre flag of {h.has_centre} (corrupt file)")
-        expected = _HEADER_SIZE + n * (width * item + 9 + 4 * self.tables) + (8 * dim if h.is_float else 0)
+        row = 4 + width * item + 8 + 4 * tables
+        expected = _HEADER_SIZE + live * row + (8 * dim if h.is_float else 0)
         raw = _body(p, expected)
         if zlib.crc32(raw) != h.crc:
             raise VocabularyError(f"{p}: the words' checksum does not match (corrupt file)")
-        a = n * width * item
-        alive = np.frombuffer(raw, np.uint8, n, a + 8 * n)
-        if alive.size and int(alive.max()) > 1:
-            raise VocabularyError(f"{p}: live flags other than 0 and 1 (corrupt file)")
-        wkeys = np.frombuffer(raw, "<i4", n * self.tables, a + 9 * n).reshape(n, self.tables)
-        if n and (int(wkeys.min()) < 0 or int(wkeys.max()) >= 1 << self.bits):
+        ids = np.frombuffer(raw, "<i4", live, 0).astype(np.int64)
+        o = 4 * live
+        words = np.frombuffer(raw, self._dtype, live * width, o).reshape(live, width)
+        o += live * width * item
+        df = np.frombuffer(raw, "<i4", live, o)
+        last = np.frombuffer(raw, "<i4", live, o + 4 * live)
+        wkeys = np.frombuffer(raw, "<i4", live * tables, o + 8 * live).reshape(live, tables)
+        o += 8 * live + 4 * live * tables
+        if live and (int(ids[0]) < 0 or int(ids[-1]) >= n or (np.diff(ids) <= 0).any()):
+            raise VocabularyError(f"{p}: word ids not ascending within 0..{n - 1} (corrupt file)")
+        if live and (int(df.min()) < 1 or int(last.min()) < 0 or int(last.max()) >= h.images):
+            raise VocabularyError(f"{p}: word counts below 1 or last images outside 0..{h.images - 1} "
+                                  "(corrupt file)")
+        if live and (int(wkeys.min()) < 0 or int(wkeys.max()) >= 1 << self.bits):
             raise VocabularyError(f"{p}: word keys outside 0..2^{self.bits}-1 (corrupt file)")
-        c0 = a + 9 * n + 4 * n * self.tables
-        centre = np.frombuffer(raw, "<f8", dim, c0).astype(np.float64) if h.has_centre else None
+        centre = np.frombuffer(raw, "<f8", dim, o).astype(np.float64) if h.has_centre else None
         if centre is not None and not np.isfinite(centre).all():
             raise VocabularyError(f"{p}: the keys' centre is not finite (corrupt file)")
         with self._lock:
             self._reset()
-            self._room(n, pool=False)  # the pool is made by the relink below
-            self._words[:n] = np.frombuffer(raw, self._dtype, n * width, 0).reshape(n, width)
-            self._df[:n] = np.frombuffer(raw, "<i4", n, a)
-            self._last[:n] = np.frombuffer(raw, "<i4", n, a + 4 * n)
-            self._alive[:n] = alive
-            self._wkeys[:n] = wkeys
+            self._room(n, 0)  # the index is made by the freeze below
+            self._words[ids] = words
+            self._df[ids] = df
+            self._last[ids] = last
+            self._alive[ids] = 1
+            self._wkeys[ids] = wkeys
             self._center = centre
-            self._made, self._images = n, int(h.images)
-            self._relink()
+            self._made, self._images, self._live = n, int(h.images), live
+            self._made_total, self._cursor = int(h.made_total), int(h.cursor)
+            once = np.flatnonzero(df == 1)  # the words that may still be purged, by the image that made them
+            order = once[np.argsort(last[once], kind="stable")]
+            if order.size:
+                cuts = np.flatnonzero(np.diff(last[order])) + 1
+                for part in np.split(order, cuts):
+                    self._fifo.append((int(last[part[0]]), ids[part].astype(np.int32)))
+            self._freeze()
 
     def forget(self) -> None:
         """Drop every word and image learned (to learn a map again from its first entry)."""
@@ -616,6 +690,9 @@ class _Header(NamedTuple):
     seed: int
     n: int
     images: int
+    live: int
+    made_total: int
+    cursor: int
     owner: bytes
     crc: int
 
