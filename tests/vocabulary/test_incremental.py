@@ -292,9 +292,10 @@ def test_a_damaged_words_file_is_refused_in_one_line(orb_frames: list[np.ndarray
             assert isinstance(v2, IncrementalVocabulary)
             db2.add(*v2.learn(orb_frames[0]), fake_features(orb_frames[0]))
         words_path(tmp_path / "b.sqlite").replace(wp)
-    if damage == "settings":  # another vocabulary's map: refused by the map's own record
-        with pytest.raises(DatabaseError, match="map.sqlite"):
+    if damage == "settings":  # another vocabulary's map: refused by the map's own record, both named
+        with pytest.raises(DatabaseError, match="map.sqlite") as refused:
             Database(other, path)
+        assert "threshold 64" in str(refused.value) and "threshold 50" in str(refused.value)
         return
     with pytest.raises(DatabaseError) as info:
         Database(other, path)

@@ -22,9 +22,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from ..errors import DatabaseError
+from ..errors import DatabaseError, VocabularyError
 from ..vocabulary import Vocabulary
-from ..vocabulary.incremental import IncrementalVocabulary
+from ..vocabulary.incremental import IncrementalVocabulary, words_path
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = ("1", "2")
@@ -191,6 +191,9 @@ def check_vocabulary(have: dict[str, Any], voc: Vocabulary | IncrementalVocabula
             how = ("an incremental vocabulary (open it with --vocab incremental, vocabulary: incremental)"
                    if made_incremental else "a trained vocabulary, not an incremental one")
             raise DatabaseError(f"{where}: made with {how}")
+        if isinstance(voc, IncrementalVocabulary):
+            raise DatabaseError(f"{where}: made by an incremental vocabulary with other settings"
+                                f"{_incremental_settings(where)}; this one has {voc.settings()}")
         raise DatabaseError(
             f"{where}: made with vocabulary {theirs}..., not with this vocabulary "
             f"{voc.fingerprint[:12]}... (open it with the vocabulary it was built with)"
@@ -265,3 +268,11 @@ def meta_value(text: object, where: str, eid: int) -> dict[str, Any] | None:
         raise DatabaseError(f"{where}: entry {eid}: meta is a JSON {type(value).__name__}, "
                             "expected an object")
     return value
+
+
+def _incremental_settings(where: str) -> str:
+    """`` (the settings its words file records)`` for a map at ``where``, or nothing."""
+    try:
+        return f" ({IncrementalVocabulary.of_words_file(words_path(where)).settings()})"
+    except (VocabularyError, OSError, ValueError):
+        return ""

@@ -261,6 +261,11 @@ class IncrementalVocabulary:
         return IncrementalInfo(str(self.kind), self._images, self._made_total, self._live, self.id_space,
                                self.threshold, self.tables, self.bits, self.purge_after, self.fingerprint)
 
+    def settings(self) -> str:
+        """The settings that decide the words, in words (for messages)."""
+        return (f"{self.kind}, threshold {self.threshold:g}, {self.tables}x{self.bits} bits, purge "
+                f"{self.purge_after}, {self.id_space} ids, seed {self.seed}")
+
     def __repr__(self) -> str:
         return (f"IncrementalVocabulary({self.kind}, threshold={self.threshold:g}, images={self._images}, "
                 f"words={self._live} live of {self._made_total} made)")
@@ -608,10 +613,9 @@ class IncrementalVocabulary:
                 self.purge_after, self.seed)
         if (h.is_float, h.dim, h.tables, h.bits, h.threshold, h.id_space, h.purge_after, h.seed) != mine:
             theirs = (f"{'float' if h.is_float else 'binary'} {h.dim}, threshold {h.threshold:g}, "
-                      f"{h.tables}x{h.bits} bits, purge {h.purge_after}")
+                      f"{h.tables}x{h.bits} bits, purge {h.purge_after}, {h.id_space} ids, seed {h.seed}")
             raise VocabularyError(f"{p}: made by an incremental vocabulary with other settings ({theirs}); "
-                                  f"this one has {self.kind}, threshold {self.threshold:g}, "
-                                  f"{self.tables}x{self.bits} bits, purge {self.purge_after}")
+                                  f"this one has {self.settings()}")
         if h.owner != map_id:
             raise VocabularyError(f"{p}: the words of another map (id {h.owner.hex()[:12]}..., this map is "
                                   f"{map_id.hex()[:12]}...)")
