@@ -29,6 +29,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import contextlib
 import json
 import resource
 import subprocess
@@ -36,6 +37,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -98,7 +100,8 @@ def build(db: Database, voc: Vocabulary, n: int, seed: int = 1) -> tuple[float, 
     return n / add_time, kept
 
 
-def query_ms(db: Database, voc: Vocabulary, kept: list[np.ndarray], repeat: int = 200) -> float:
+def query_ms(db: Database, voc: Vocabulary, kept: list[np.ndarray], repeat: int = 200,
+             max_results: int = 10) -> float:
     """Median query time for revisits: stored images seen again with 20 % new words."""
     rng = np.random.default_rng(7)
     bows = []
@@ -111,7 +114,7 @@ def query_ms(db: Database, voc: Vocabulary, kept: list[np.ndarray], repeat: int 
     for i in range(repeat):
         b = bows[i % len(bows)]
         t = time.perf_counter()
-        db.query(b, max_results=10)
+        db.query(b, max_results=max_results)
         times.append(time.perf_counter() - t)
     return float(np.median(times) * 1000)
 
@@ -454,7 +457,76 @@ def growing_map(tail: int | None = None, repeat: int = 3) -> dict[str, object]:
     return out
 
 
-SECTIONS = ("vocabulary", "database", "end_to_end", "first_decision", "growing")
+def peers_section(tmp: Path, first_decision_figure: dict[str, Any] | None,
+                  runs: int = 11) -> dict[str, object]:
+    """Issue 38's side-by-side: this engine's figures on the inputs of the peers' run (the first
+    233 CamVid test frames, ORB 1000, the shipped vocabulary), on one pinned core, medians over
+    ``runs``, printed beside the peers' figures (``peers_reference.json``: quoted from that run,
+    the peers being C++ libraries no registry here offers). The inputs are written to
+    ``tmp/peers_inputs`` (``--peers-inputs DIR`` keeps them) for a peer's harness to read; the
+    first decision is the ``first_decision`` section's (fast, empty numba cache)."""
+    with contextlib.suppress(AttributeError, OSError):  # one core, as the peers' run was
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    voc = default_vocabulary()
+    voc.warm_up()
+    files = sorted((SHARED / "camvid" / "test").glob("*.jpg"))[:233]
+    orb = OrbExtractor()
+    frames = [orb.extract(read_image(f, "8bit-grey")).descriptors for f in files]
+    mean = np.mean([len(d) for d in frames])
+    out: dict[str, object] = {"inputs": f"{len(frames)} CamVid test frames (sorted, the first 233), ORB "
+                                        f"{orb.n_features}, {mean:.0f} a frame; the shipped vocabulary",
+                              "runs": runs, "load_average": load_average()}
+    inputs = tmp / "peers_inputs"
+    inputs.mkdir(parents=True, exist_ok=True)
+    with open(inputs / "descriptors.bin", "wb") as f:  # uint32 frames, then per frame uint32 rows + rows x 32
+        f.write(np.uint32(len(frames)).tobytes())
+        for d in frames:
+            f.write(np.uint32(d.shape[0]).tobytes() + np.ascontiguousarray(d).tobytes())
+    text = inputs / "vocabulary.txt"  # ORB-SLAM's text format, as ORBvoc.txt
+    save_vocabulary(voc, text)
+    out["transform_ms"] = round(median_over(frames, voc.transform, runs), 4)
+    out["text_load_ms"] = round(timed_loads(text, runs) * 1000, 1)
+    out["binary_load_ms"] = round(timed_loads(default_vocabulary_path(), runs, mmap=True) * 1000, 3)
+    rng = np.random.default_rng(0)
+    bows = [voc.transform(d) for d in frames]
+    feats = [fake_features(d, rng) for d in frames]
+    adds, queries = [], []
+    for _ in range(runs):
+        db = Database(voc)
+        a, q = [], []
+        for i, (bow, fvec) in enumerate(bows):
+            t = time.perf_counter()
+            db.add(bow, fvec, feats[i], timestamp=float(i))
+            t1 = time.perf_counter()
+            db.query(bow, max_results=50)
+            a.append(t1 - t)
+            q.append(time.perf_counter() - t1)
+        db.close()
+        adds.append(np.mean(a) * 1e3)
+        queries.append(np.median(q) * 1e3)
+    out["add_ms_mean"] = round(float(np.median(adds)), 4)
+    out["query_233_after_every_add_ms"] = round(float(np.median(queries)), 3)
+    db = Database(voc)
+    _, kept = build(db, voc, 10_000)
+    out["query_10k_top50_ms"] = round(query_ms(db, voc, kept, max_results=50), 3)
+    out["query_10k_entries"] = ("10,000 synthetic entries of the shipped vocabulary (engine_synth.py), "
+                                "queried by revisits of them (the database section's protocol)")
+    db.close()
+    first = first_decision_figure.get("fast_cold_cache", {}) if first_decision_figure else {}
+    if first:
+        out["first_decision_s"] = first.get("to_first_decision_s")
+    ref = json.loads((HERE / "peers_reference.json").read_text())
+    out["peers"] = ref
+    print(f"  {'figure':<34} {'stablecues':>12}  peer", flush=True)
+    for key, peer in ref["figures"].items():
+        mine = out.get(key, "-")
+        print(f"  {peer['what'][:34]:<34} {mine!s:>12}  {peer['peer']} {peer['value']}", flush=True)
+    print(f"  {'mean add of the 233':<34} {out['add_ms_mean']!s:>12}  (the peers' adds: 2-3x slower)",
+          flush=True)
+    return out
+
+
+SECTIONS = ("vocabulary", "database", "end_to_end", "first_decision", "growing", "peers")
 
 
 def median_of_runs(runs: list[dict[str, object]]) -> dict[str, object]:
@@ -484,6 +556,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "results" / "engine.json")
     ap.add_argument("--tails", type=int, nargs="+", default=[65536, 16384, 8192],
                     help="growing: the DatabaseConfig.tail_postings values compared")
+    ap.add_argument("--peers-inputs", type=Path, default=None,
+                    help="peers: keep the inputs (descriptors.bin, vocabulary.txt) in this folder")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -513,6 +587,13 @@ def main() -> None:
         print("time to the first decision, fresh processes ...", flush=True)
         results["first_decision"] = first_decision()
         results["first_decision_measured"] = time.strftime("%Y-%m-%d %H:%M")
+    if "peers" in args.sections:
+        print("side by side with the peers' run ...", flush=True)
+        with tempfile.TemporaryDirectory() as tmp_s:
+            tmp = Path(tmp_s) if args.peers_inputs is None else args.peers_inputs
+            first = results.get("first_decision")
+            results["peers"] = peers_section(tmp, first if isinstance(first, dict) else None)
+        results["peers_measured"] = time.strftime("%Y-%m-%d %H:%M")
     frames = real_frames()
     if "end_to_end" in args.sections and frames:
         print("end to end on real frames ...", flush=True)

@@ -223,7 +223,13 @@ def _pool() -> list[Features]:
 def _flip(d: np.ndarray, bits: int, rng: np.random.Generator) -> np.ndarray:
     """``d`` with ``bits`` random bits of every row flipped."""
     n = d.shape[0]
-    pos = np.argsort(rng.random((n, 256)), axis=1)[:, :bits]
+    pos = rng.integers(0, 256, (n, bits))
+    while True:  # distinct positions in every row: rows that drew one twice draw again
+        s = np.sort(pos, axis=1)
+        again = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
+        if not again.size:
+            break
+        pos[again] = rng.integers(0, 256, (again.size, bits))
     mask = np.zeros((n, 256), np.uint8)
     np.put_along_axis(mask, pos, 1, axis=1)
     return d ^ np.packbits(mask, axis=1, bitorder="little")
@@ -284,6 +290,7 @@ def _time_growth(pool: list[Features], sizes: tuple[int, ...], explore: bool, in
                 "wall_s": round(time.perf_counter() - t_all, 1)}
             if incremental:
                 out[str(i + 1)]["words_made"] = voc.words_made
+                out[str(i + 1)]["vocabulary_mb"] = round(voc.nbytes / 2**20, 1)
             got = out[str(i + 1)]
             who = f"{'incremental' if incremental else 'trained':11s} {'explore' if explore else 'patrol':7s}"
             print(f"    {who} {i + 1:>7} entries: query {got['query_ms']['mean']:.2f} ms, add "

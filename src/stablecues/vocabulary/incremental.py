@@ -257,6 +257,13 @@ class IncrementalVocabulary:
     def words_live(self) -> int:
         return self._live
 
+    @property
+    def nbytes(self) -> int:
+        """Memory held: the words' rows, counts and keys, and the index (runs and pages)."""
+        arrays = [self._words, self._df, self._last, self._alive, self._wkeys, *self._runs.values(),
+                  *self._pool.values()]
+        return sum(int(a.nbytes) for a in arrays)
+
     def info(self) -> IncrementalInfo:
         return IncrementalInfo(str(self.kind), self._images, self._made_total, self._live, self.id_space,
                                self.threshold, self.tables, self.bits, self.purge_after, self.fingerprint)
