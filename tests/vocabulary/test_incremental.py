@@ -266,6 +266,37 @@ def test_a_map_saves_its_words_and_continues_them(orb_frames: list[np.ndarray], 
         db.add(*IncrementalVocabulary(ORB).learn(orb_frames[1]), fake_features(orb_frames[1]))
 
 
+def test_a_reader_follows_the_writers_words(orb_frames: list[np.ndarray], tmp_path: Path) -> None:
+    """A reader that refreshes learns the entries the writer added since (and takes the writer's
+    words file when a newer one was saved): its words are the writer's, and it finds the new
+    frames."""
+    path = tmp_path / "map.sqlite"
+    writer_voc = IncrementalVocabulary(ORB, purge_after=3, save_every=5)
+    with Database(writer_voc, path) as writer:
+        for d in orb_frames[:3]:
+            writer.add(*writer_voc.learn(d), fake_features(d))
+        writer.flush()
+        reader_voc = IncrementalVocabulary(ORB, purge_after=3, save_every=5)
+        with Database(reader_voc, path, readonly=True) as reader:
+            assert reader_voc.images == 3
+            saves = []
+            restore = reader_voc.restore
+            reader_voc.restore = lambda *a: saves.append(a) or restore(*a)  # type: ignore[method-assign]
+            # entries published with the words file older than them (as between two saves: the
+            # reader learns them from the entries), then twice with a newer one (the reader reads it)
+            for k, step in enumerate((orb_frames[3:4], orb_frames[4:9], orb_frames[9:])):
+                older = words_path(path).read_bytes()
+                for d in step:
+                    writer.add(*writer_voc.learn(d), fake_features(d))
+                writer.flush()  # publishes the entries (and saves the words)
+                if k == 0:
+                    words_path(path).write_bytes(older)
+                assert reader.refresh() == len(step)
+                assert state(reader_voc) == state(writer_voc)
+            assert len(saves) == 2  # the second and third steps read the writer's newer words file
+            assert reader.query(reader_voc.transform(orb_frames[10])[0], 1)[0].entry_id == 10
+
+
 @pytest.mark.parametrize("damage", ["truncated", "flipped", "settings", "other map", "garbage"])
 def test_a_damaged_words_file_is_refused_in_one_line(orb_frames: list[np.ndarray], tmp_path: Path,
                                                      damage: str) -> None:

@@ -453,9 +453,30 @@ class Database:
         with self._add_lock:
             if self._writer is None:
                 self._load_index()
+                self._follow_words()
             else:
                 self._load_new_entries()
         return len(self) - before
+
+    def _follow_words(self) -> None:
+        """A reader's incremental vocabulary brought up to the entries it now holds: the
+        writer's newer words file when it saved one since, and the entries after it learned
+        again, as a reopen does."""
+        voc = self._incremental
+        n = len(self)
+        if voc is None or voc.images >= n or self.path is None or self._schema.uuid is None:
+            return
+        wp = words_path(self.path)
+        try:
+            saved = IncrementalVocabulary.saved_images(wp)
+        except VocabularyError:
+            saved = -1
+        if saved > voc.images:
+            self._catch_up(voc, n)
+            return
+        for eid in range(voc.images, n):
+            d = self._stored_of(eid)
+            voc.replay(d if d is not None else np.zeros((0, voc.kind.size), voc.kind.dtype))
 
     def _load_new_entries(self) -> None:
         index = self.index

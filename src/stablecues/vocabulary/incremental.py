@@ -607,6 +607,15 @@ class IncrementalVocabulary:
         except (ConfigError, InputError) as exc:
             raise VocabularyError(f"{path}: {exc}") from None
 
+    @staticmethod
+    def saved_images(path: str | Path) -> int:
+        """The images a words file holds the words of (its header only).
+
+        Raises:
+            VocabularyError: not a readable words file.
+        """
+        return int(_read_header(Path(path)).images)
+
     def restore(self, path: str | Path, map_id: bytes) -> None:
         """Read the words saved at ``path`` for the map ``map_id`` (replacing what is here).
 
