@@ -390,11 +390,20 @@ def test_words_lost_after_a_removal_are_learned_again_without_it(orb_frames: lis
             db.add(*voc.learn(d), fake_features(d))
         db.remove([1])
     words_path(path).unlink()
+    report = check_map(path)  # default settings: found without the words file (said in a warning)
+    assert report.vocabulary == "incremental" and not report.problems
+    assert any("missing" in w for w in report.warnings)
     again = IncrementalVocabulary(ORB, save_every=100)
     with Database(again, path) as db:
         assert again.images == 6 and len(db) == 6
         db.add(*again.learn(orb_frames[6]), fake_features(orb_frames[6]))
     assert words_path(path).is_file()
+    other = tmp_path / "other.sqlite"  # other settings, no words file: says what is missing
+    with Database(IncrementalVocabulary(ORB, threshold=50), other) as db:
+        db.add(*db.vocabulary.learn(orb_frames[0]), fake_features(orb_frames[0]))  # type: ignore[union-attr]
+    words_path(other).unlink()
+    with pytest.raises(DatabaseError, match="words file .* is missing"):
+        check_map(other)
     remove_database(path)  # what `run --overwrite` does: the words go with the map
     assert not words_path(path).exists()
     with Database(IncrementalVocabulary(ORB), path) as db:

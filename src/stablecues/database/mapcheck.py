@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DatabaseError, VocabularyError
+from ..types import DescriptorKind
 from ..vocabulary import DEFAULT_VOCABULARIES, Vocabulary, default_vocabulary
 from ..vocabulary.incremental import IncrementalVocabulary, words_path
 from .store import Database
@@ -74,6 +75,19 @@ def _recorded_fingerprint(path: Path) -> str:
     return row[0]
 
 
+def _made_incremental(path: Path) -> bool:
+    """Whether a map file records an incremental vocabulary (k = 0)."""
+    try:
+        conn = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+        try:
+            row = conn.execute("SELECT value FROM meta WHERE key = 'vocabulary'").fetchone()
+        finally:
+            conn.close()
+    except sqlite3.DatabaseError:
+        return False
+    return row is not None and '"k": 0,' in str(row[0])
+
+
 def map_vocabulary(path: Path) -> tuple[Vocabulary | IncrementalVocabulary, str]:
     """The shipped vocabulary a map was made with (by the fingerprint it records).
 
@@ -93,6 +107,13 @@ def map_vocabulary(path: Path) -> tuple[Vocabulary | IncrementalVocabulary, str]
         voc = default_vocabulary(name)
         if voc.fingerprint == recorded:
             return voc, f"default:{name}"
+    for kind in (DescriptorKind("binary", 32), DescriptorKind("float", 64), DescriptorKind("float", 128)):
+        inc = IncrementalVocabulary(kind)  # the default settings (ORB, XFeat, SIFT): the words
+        if inc.fingerprint == recorded:  # file is missing, the words are learned again from the entries
+            return inc, "incremental"
+    if not words.exists() and _made_incremental(path):
+        raise DatabaseError(f"{path}: made with an incremental vocabulary of settings other than the "
+                            f"defaults, and its words file {words} (which records them) is missing")
     raise DatabaseError(f"{path}: made with vocabulary {recorded[:12]}..., none of the shipped ones "
                         f"({', '.join(DEFAULT_VOCABULARIES)}): give it with --vocab")
 
