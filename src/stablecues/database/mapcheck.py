@@ -58,34 +58,36 @@ class MapReport:
         return not self.problems and not self.warnings
 
 
-def _recorded_fingerprint(path: Path) -> str:
-    """The vocabulary fingerprint a map file records (read-only, nothing written)."""
+def _meta(path: Path, key: str) -> object:
+    """One value of a map file's metadata, None when absent (read-only, nothing written).
+
+    Raises:
+        DatabaseError: not a map file, or not readable as one.
+    """
     if not path.is_file():
         raise DatabaseError(f"{path}: map file not found" if not path.exists() else f"{path}: not a file")
     try:
         conn = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
         try:
-            row = conn.execute("SELECT value FROM meta WHERE key = 'vocabulary_fingerprint'").fetchone()
+            row = conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
         finally:
             conn.close()
     except sqlite3.DatabaseError as exc:
         raise DatabaseError(f"{path}: not a stablecues map or corrupt ({exc})") from None
-    if row is None or not isinstance(row[0], str):
+    return None if row is None else row[0]
+
+
+def _recorded_fingerprint(path: Path) -> str:
+    """The vocabulary fingerprint a map file records."""
+    value = _meta(path, "vocabulary_fingerprint")
+    if not isinstance(value, str):
         raise DatabaseError(f"{path}: not a stablecues map (no vocabulary fingerprint)")
-    return row[0]
+    return value
 
 
 def _made_incremental(path: Path) -> bool:
     """Whether a map file records an incremental vocabulary (k = 0)."""
-    try:
-        conn = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
-        try:
-            row = conn.execute("SELECT value FROM meta WHERE key = 'vocabulary'").fetchone()
-        finally:
-            conn.close()
-    except sqlite3.DatabaseError:
-        return False
-    return row is not None and '"k": 0,' in str(row[0])
+    return '"k": 0,' in str(_meta(path, "vocabulary"))
 
 
 def map_vocabulary(path: Path) -> tuple[Vocabulary | IncrementalVocabulary, str]:
