@@ -190,22 +190,22 @@ def assign_float(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: n
         out[i] = best[i]
 
 
-def freeze(ids: np.ndarray, wkeys: np.ndarray, words: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray,
+def freeze(ids: np.ndarray, keys: np.ndarray, words: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray,
            r_ids: np.ndarray, r_desc: np.ndarray) -> None:
     """Put words ``ids`` (ascending) into the empty runs :func:`runs` made for them: each
     bucket's words in id order at the start of its run.
 
     Args:
-        ids: (L,) int32 the words; wkeys: (capacity, T) int32 each word's keys; words: their rows.
+        ids: (L,) int32 the words; keys: (L, T) int32 their keys; words: (capacity, W) the rows.
         r_start, r_fill (zeros), r_ids, r_desc: the runs, filled here.
     """
-    tables = wkeys.shape[1]
+    tables = keys.shape[1]
     nb = r_fill.shape[0] // tables
     width = words.shape[1]
     for r in range(ids.shape[0]):
         w = ids[r]
         for t in range(tables):
-            b = t * nb + wkeys[w, t]
+            b = t * nb + keys[r, t]
             s = r_start[b] + r_fill[b]
             r_fill[b] += 1
             r_ids[s] = w

@@ -202,9 +202,10 @@ class IncrementalVocabulary:
         self._df = np.zeros(0, np.int32)
         self._last = np.zeros(0, np.int32)
         self._alive = np.zeros(0, np.uint8)
-        # each word's keys as made when it was learned: a freeze and a reopen reuse them, never
-        # recomputing a float projection in another batch shape (BLAS may round it otherwise)
-        self._wkeys = np.zeros((0, self.tables), np.int32)
+        # float descriptors: each word's keys as made when it was learned, which a freeze and a
+        # reopen reuse, never recomputing a projection in another batch shape (BLAS may round it
+        # otherwise); binary keys are bits of the word itself, taken again when needed
+        self._wkeys = np.zeros((0, self.tables if self._float else 0), np.int32)
         self._id_space_said = False
         self._last_learned: np.ndarray | None = None
         mod = _kernel_module()
@@ -319,7 +320,7 @@ class IncrementalVocabulary:
             self._df = _grow(self._df, (alloc,))
             self._last = _grow(self._last, (alloc,))
             self._alive = _grow(self._alive, (alloc,))
-            self._wkeys = _grow(self._wkeys, (alloc, self.tables))
+            self._wkeys = _grow(self._wkeys, (alloc, self._wkeys.shape[1]))
             self._alloc = alloc
         pl = self._pool
         pages, slots = (int(v) for v in pl["state"])
@@ -398,7 +399,8 @@ class IncrementalVocabulary:
         q = np.ascontiguousarray(d, np.float32) if self._float else as_words(d)
         reused = ids.size - fresh
         self._overflow += _kernels().grow(todo, ids, keys, q, *pl, self._words, self._alive, out)
-        self._wkeys[ids] = keys[todo[: ids.size]]
+        if self._float:
+            self._wkeys[ids] = keys[todo[: ids.size]]
         self._df[ids] = 0
         self._made += fresh
         self._made_total += int(ids.size)
@@ -509,7 +511,8 @@ class IncrementalVocabulary:
             return
         self._alive[gone] = 0
         for arr in (self._words, self._df, self._last, self._wkeys):
-            arr[gone] = 0
+            if arr.shape[-1]:
+                arr[gone] = 0
         self._live -= int(gone.size)
         self._version += 1
         self._dead_linked += int(gone.size)
@@ -519,13 +522,22 @@ class IncrementalVocabulary:
         no overflow page, no purged word (the words found do not change: only how fast)."""
         mod = _kernel_module()
         ids = np.flatnonzero(self._alive[: self._made]).astype(np.int32)
-        flat = self._wkeys[ids].astype(np.int64) + (np.arange(self.tables, dtype=np.int64) << self.bits)
+        keys = self._word_keys(ids)
+        flat = keys.astype(np.int64) + (np.arange(self.tables, dtype=np.int64) << self.bits)
         counts = np.bincount(flat.ravel(), minlength=self.tables << self.bits)
         width = self._words.shape[1]
         self._runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
-        _kernels().freeze(ids, self._wkeys, self._words, *(self._runs[a] for a in mod.RUN_ARGS))
+        _kernels().freeze(ids, keys, self._words, *(self._runs[a] for a in mod.RUN_ARGS))
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = int(ids.size), 0, 0
+
+    def _word_keys(self, ids: np.ndarray) -> np.ndarray:
+        """(len(ids), tables) int32 the keys of words ``ids``: kept (float), or the words' bits."""
+        if self._float:
+            return np.ascontiguousarray(self._wkeys[ids])
+        out = np.empty((ids.size, self.tables), np.int64)
+        _kernels().keys_binary(np.ascontiguousarray(self._words[ids]), self._positions, out)
+        return out.astype(np.int32)
 
     def _descriptors_of(self, ids: np.ndarray) -> np.ndarray:
         """The descriptors of words ``ids`` (in the form they were given)."""
@@ -563,7 +575,7 @@ class IncrementalVocabulary:
             ids = np.flatnonzero(self._alive[:n])  # the live words only: purged ones left no trace
             body = [ids.astype("<i4").tobytes(), np.ascontiguousarray(self._words[ids]).tobytes(),
                     self._df[ids].astype("<i4").tobytes(), self._last[ids].astype("<i4").tobytes(),
-                    self._wkeys[ids].astype("<i4").tobytes()]
+                    self._wkeys[ids].astype("<i4").tobytes()]  # float only: binary keys are bits of the words
             if self._float:  # the keys' centre (zeros until the first image)
                 centre = self._center if self._center is not None else np.zeros(self.kind.size)
                 body.append(centre.astype("<f8").tobytes())
@@ -643,7 +655,8 @@ class IncrementalVocabulary:
                                   f"searched from {h.cursor}, in an id space of {h.id_space} (corrupt file)")
         if h.has_centre not in (0, 1) or (h.has_centre and not h.is_float):
             raise VocabularyError(f"{p}: a centre flag of {h.has_centre} (corrupt file)")
-        row = 4 + width * item + 8 + 4 * tables
+        kt = tables if h.is_float else 0  # keys kept per word
+        row = 4 + width * item + 8 + 4 * kt
         expected = _HEADER_SIZE + live * row + (8 * dim if h.is_float else 0)
         raw = _body(p, expected)
         if zlib.crc32(raw) != h.crc:
@@ -654,14 +667,14 @@ class IncrementalVocabulary:
         o += live * width * item
         df = np.frombuffer(raw, "<i4", live, o)
         last = np.frombuffer(raw, "<i4", live, o + 4 * live)
-        wkeys = np.frombuffer(raw, "<i4", live * tables, o + 8 * live).reshape(live, tables)
-        o += 8 * live + 4 * live * tables
+        wkeys = np.frombuffer(raw, "<i4", live * kt, o + 8 * live).reshape(live, kt)
+        o += 8 * live + 4 * live * kt
         if live and (int(ids[0]) < 0 or int(ids[-1]) >= n or (np.diff(ids) <= 0).any()):
             raise VocabularyError(f"{p}: word ids not ascending within 0..{n - 1} (corrupt file)")
         if live and (int(df.min()) < 1 or int(last.min()) < 0 or int(last.max()) >= h.images):
             raise VocabularyError(f"{p}: word counts below 1 or last images outside 0..{h.images - 1} "
                                   "(corrupt file)")
-        if live and (int(wkeys.min()) < 0 or int(wkeys.max()) >= 1 << self.bits):
+        if wkeys.size and (int(wkeys.min()) < 0 or int(wkeys.max()) >= 1 << self.bits):
             raise VocabularyError(f"{p}: word keys outside 0..2^{self.bits}-1 (corrupt file)")
         centre = np.frombuffer(raw, "<f8", dim, o).astype(np.float64) if h.has_centre else None
         if centre is not None and not np.isfinite(centre).all():
