@@ -405,7 +405,8 @@ class IncrementalVocabulary:
         self._made += fresh
         self._made_total += int(ids.size)
         self._live += int(ids.size)
-        self._fifo.append((self._images, ids))
+        if self.purge_after:  # the words that may be purged (none without a purge)
+            self._fifo.append((self._images, ids))
         if (reused or ids.size < todo.size) and not self._id_space_said:
             self._id_space_said = True
             log.warning("incremental vocabulary: all %d word ids are used; the ids of purged words are given "
@@ -692,7 +693,7 @@ class IncrementalVocabulary:
             self._made_total, self._cursor = int(h.made_total), int(h.cursor)
             once = np.flatnonzero(df == 1)  # the words that may still be purged, by the image that made them
             order = once[np.argsort(last[once], kind="stable")]
-            if order.size:
+            if order.size and self.purge_after:
                 cuts = np.flatnonzero(np.diff(last[order])) + 1
                 for part in np.split(order, cuts):
                     self._fifo.append((int(last[part[0]]), ids[part].astype(np.int32)))
