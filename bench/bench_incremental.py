@@ -16,13 +16,15 @@ Sections (``--sections``, all by default):
     words after the run, ms per frame by stage.
 ``scale``
     Add and query milliseconds per frame at 10^3, 10^4 and 10^5 entries (the 200 frames before
-    each; the map is built without queries in between), trained against incremental, on one core: a robot patrolling a world of real ORB frames (CamVid train + val,
-    468 frames; each lap flips 8 random bits of every descriptor: a place seen again, not the same
-    pixels), and an exploring one (each lap a new world: every descriptor of the lap XORed with a
-    mask of 96 bits, so nothing of the earlier laps matches) up to 10^4. Words, bytes of the words
-    file per entry, and the time to reopen the words (restore, relink) at the largest size. Maps
-    in memory without descriptors (the map's own costs are ``bench_scale.py``'s): what is measured
-    is what the vocabulary adds.
+    each; the map is built without queries in between), trained against incremental, on one
+    core: a robot patrolling a world of real ORB frames (CamVid train + val, 468 frames; each lap
+    flips 8 random bits of every descriptor: a place seen again, not the same pixels), and an
+    exploring one (each lap a new world: every descriptor of the lap XORed with a mask of 96
+    bits, so nothing of the earlier laps matches) up to 10^4 (``--scale-walks`` picks them).
+    Words made and live, the vocabulary's memory, bytes of the words file per entry, and the
+    time to read the words back (restore and index rebuild) at the largest size. Maps in memory
+    without descriptors (the map's own costs are ``bench_scale.py``'s): what is measured is
+    what the vocabulary adds.
 
 Writes ``bench/results/incremental.json`` (sections not run keep their figures).
 """
@@ -321,7 +323,8 @@ def _stats(values: list[float]) -> dict[str, float]:
             "p99": round(float(np.percentile(a, 99)), 3), "max": round(float(a.max()), 3), "n": int(a.size)}
 
 
-def bench_scale(work: Path, network: bool, sizes: tuple[int, ...] = SCALE_SIZES) -> dict[str, Any]:
+def bench_scale(work: Path, network: bool, sizes: tuple[int, ...] = SCALE_SIZES,
+                walks: tuple[str, ...] = ("patrol", "explore")) -> dict[str, Any]:
     del network
     pool = _pool()
     out: dict[str, Any] = {
@@ -332,6 +335,8 @@ def bench_scale(work: Path, network: bool, sizes: tuple[int, ...] = SCALE_SIZES)
     for explore, top in ((False, max(sizes)), (True, min(max(sizes), 10_000))):
         part = tuple(s for s in sizes if s <= top)
         key = "explore" if explore else "patrol"
+        if key not in walks:
+            continue
         out[key] = {v: _time_growth(pool, part, explore, v == "incremental", work)
                     for v in ("trained", "incremental")}
     out["load_after"] = list(os.getloadavg())
@@ -374,6 +379,7 @@ def main() -> None:
     ap.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated: {', '.join(SECTIONS)}")
     ap.add_argument("--scale-sizes", default=",".join(map(str, SCALE_SIZES)),
                     help="entries at which the scale section times adds and queries")
+    ap.add_argument("--scale-walks", default="patrol,explore", help="the walks the scale section times")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "incremental.json")
     ap.add_argument("--grid-log", type=Path, metavar="LOG",
                     help="take the grid section from what a run of it printed (LOG), then stop")
@@ -408,7 +414,9 @@ def main() -> None:
             print(f"{section}:", flush=True)
             if section == "scale":
                 sizes = tuple(int(s) for s in args.scale_sizes.split(","))
-                results[section] = bench_scale(Path(tmp), network, sizes)
+                walks = tuple(w for w in args.scale_walks.split(",") if w)
+                results[section] = bench_scale(Path(tmp), network, sizes, walks)
+                results[section][f"measured_{'_'.join(walks)}"] = time.strftime("%Y-%m-%d %H:%M")
             else:
                 results[section] = SECTIONS[section](Path(tmp), network)
     results["last_run"] = {"sections": sections, "date": time.strftime("%Y-%m-%d %H:%M"),

@@ -190,27 +190,28 @@ def assign_float(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: n
         out[i] = best[i]
 
 
-def freeze(ids: np.ndarray, keys: np.ndarray, words: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray,
+def freeze(ids: np.ndarray, keys: np.ndarray, rows: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray,
            r_ids: np.ndarray, r_desc: np.ndarray) -> None:
     """Put words ``ids`` (ascending) into the empty runs :func:`runs` made for them: each
-    bucket's words in id order at the start of its run.
+    bucket's words in id order at the start of its run. One table at a time: the rows read
+    (gathered, a few MB) stay in cache while one table's runs are written.
 
     Args:
-        ids: (L,) int32 the words; keys: (L, T) int32 their keys; words: (capacity, W) the rows.
+        ids: (L,) int32 the words; keys: (L, T) int32 their keys; rows: (L, W) their
+            descriptors, gathered.
         r_start, r_fill (zeros), r_ids, r_desc: the runs, filled here.
     """
     tables = keys.shape[1]
     nb = r_fill.shape[0] // tables
-    width = words.shape[1]
-    for r in range(ids.shape[0]):
-        w = ids[r]
-        for t in range(tables):
+    width = rows.shape[1]
+    for t in range(tables):
+        for r in range(ids.shape[0]):
             b = t * nb + keys[r, t]
             s = r_start[b] + r_fill[b]
             r_fill[b] += 1
-            r_ids[s] = w
+            r_ids[s] = ids[r]
             for j in range(width):
-                r_desc[s, j] = words[w, j]
+                r_desc[s, j] = rows[r, j]
 
 
 def grow(todo: np.ndarray, new_ids: np.ndarray, keys: np.ndarray, q: np.ndarray, r_start: np.ndarray,

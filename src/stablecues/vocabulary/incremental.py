@@ -528,7 +528,8 @@ class IncrementalVocabulary:
         counts = np.bincount(flat.ravel(), minlength=self.tables << self.bits)
         width = self._words.shape[1]
         self._runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
-        _kernels().freeze(ids, keys, self._words, *(self._runs[a] for a in mod.RUN_ARGS))
+        rows = np.ascontiguousarray(self._words[ids])
+        _kernels().freeze(ids, keys, rows, *(self._runs[a] for a in mod.RUN_ARGS))
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = int(ids.size), 0, 0
 
