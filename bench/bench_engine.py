@@ -473,9 +473,9 @@ def peers_section(tmp: Path, first_decision_figure: dict[str, Any] | None,
     orb = OrbExtractor()
     frames = [orb.extract(read_image(f, "8bit-grey")).descriptors for f in files]
     mean = np.mean([len(d) for d in frames])
-    out: dict[str, object] = {"inputs": f"{len(frames)} CamVid test frames (sorted, the first 233), ORB "
-                                        f"{orb.n_features}, {mean:.0f} a frame; the shipped vocabulary",
-                              "runs": runs, "load_average": load_average()}
+    what = (f"{len(frames)} CamVid test frames (sorted, the first 233), ORB {orb.config.n_features}, "
+            f"{mean:.0f} a frame; the shipped vocabulary")
+    out: dict[str, object] = {"inputs": what, "runs": runs, "load_average": load_average()}
     inputs = tmp / "peers_inputs"
     inputs.mkdir(parents=True, exist_ok=True)
     with open(inputs / "descriptors.bin", "wb") as f:  # uint32 frames, then per frame uint32 rows + rows x 32
