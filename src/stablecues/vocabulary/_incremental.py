@@ -119,17 +119,21 @@ def scan_float(q: np.ndarray, i: int, desc: np.ndarray, ids: np.ndarray, lo: int
     return best, best_d
 
 
-def assign_binary(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray, r_ids: np.ndarray,
-                  r_desc: np.ndarray, head: np.ndarray, pg_next: np.ndarray, pg_start: np.ndarray,
-                  pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray, slot_desc: np.ndarray,
-                  state: np.ndarray, alive: np.ndarray, words: np.ndarray, threshold: int,
-                  out: np.ndarray) -> None:
-    """Each descriptor's word: the nearest live word within ``threshold`` bits among its
-    candidates (ties to the lower id), -1 when none.
+scan = scan_binary  # what assign calls: each variant binds its own (:func:`_variant`)
+
+
+def assign(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray, r_ids: np.ndarray,
+           r_desc: np.ndarray, head: np.ndarray, pg_next: np.ndarray, pg_start: np.ndarray,
+           pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray, slot_desc: np.ndarray,
+           state: np.ndarray, alive: np.ndarray, words: np.ndarray, bound: Any, out: np.ndarray) -> None:
+    """Each descriptor's word: the nearest live word closer than ``bound`` among its candidates
+    (ties to the lower id), -1 when none. The template of :data:`assign_binary` (``scan`` is
+    :func:`scan_binary`, ``bound`` the threshold in bits + 1) and :data:`assign_float`
+    (:func:`scan_float`, the squared threshold).
 
     Args:
         keys: (N, T) int64 bucket of each descriptor in each table.
-        q: (N, W) uint64 descriptors.
+        q: (N, W) descriptors (uint64 words, or float32).
         r_start, r_fill, r_ids, r_desc: the runs (:func:`runs`).
         head: (T, 2^bits) int32 newest overflow page of each bucket; pg_*: the page pool;
             slot_ids, slot_desc: its slots; state: (2,) int64 pages and slots used (unchanged).
@@ -139,7 +143,7 @@ def assign_binary(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: 
     n = q.shape[0]
     tables, nb = head.shape
     best = np.full(n, NONE, np.int64)
-    best_d = np.full(n, threshold + 1, np.int64)
+    best_d = np.full(n, bound)
     for t in range(tables):
         # the descriptors in the order of their buckets: the runs are read front to back
         order = np.argsort(keys[:, t])
@@ -147,12 +151,11 @@ def assign_binary(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: 
             i = order[r]
             k = keys[i, t]
             lo = r_start[t * nb + k]
-            b, bd = scan_binary(q, i, r_desc, r_ids, lo, lo + r_fill[t * nb + k], alive, words, best[i],
-                                best_d[i])
+            b, bd = scan(q, i, r_desc, r_ids, lo, lo + r_fill[t * nb + k], alive, words, best[i], best_d[i])
             p = head[t, k]
             while p != NONE:
-                b, bd = scan_binary(q, i, slot_desc, slot_ids, pg_start[p], pg_start[p] + pg_fill[p],
-                                    alive, words, b, bd)
+                b, bd = scan(q, i, slot_desc, slot_ids, pg_start[p], pg_start[p] + pg_fill[p], alive, words,
+                             b, bd)
                 p = pg_next[p]
             best[i] = b
             best_d[i] = bd
@@ -160,34 +163,16 @@ def assign_binary(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: 
         out[i] = best[i]
 
 
-def assign_float(keys: np.ndarray, q: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray, r_ids: np.ndarray,
-                 r_desc: np.ndarray, head: np.ndarray, pg_next: np.ndarray, pg_start: np.ndarray,
-                 pg_cap: np.ndarray, pg_fill: np.ndarray, slot_ids: np.ndarray, slot_desc: np.ndarray,
-                 state: np.ndarray, alive: np.ndarray, words: np.ndarray, threshold: float,
-                 out: np.ndarray) -> None:
-    """:func:`assign_binary` for float descriptors, ``threshold`` a squared distance."""
-    n = q.shape[0]
-    tables, nb = head.shape
-    best = np.full(n, NONE, np.int64)
-    best_d = np.full(n, threshold, np.float64)
-    for t in range(tables):
-        # the descriptors in the order of their buckets: the runs are read front to back
-        order = np.argsort(keys[:, t])
-        for r in range(n):
-            i = order[r]
-            k = keys[i, t]
-            lo = r_start[t * nb + k]
-            b, bd = scan_float(q, i, r_desc, r_ids, lo, lo + r_fill[t * nb + k], alive, words, best[i],
-                               best_d[i])
-            p = head[t, k]
-            while p != NONE:
-                b, bd = scan_float(q, i, slot_desc, slot_ids, pg_start[p], pg_start[p] + pg_fill[p],
-                                   alive, words, b, bd)
-                p = pg_next[p]
-            best[i] = b
-            best_d[i] = bd
-    for i in range(n):
-        out[i] = best[i]
+def _variant(name: str, scanner: Callable[..., Any], namespace: dict[str, Any]) -> Any:
+    """:func:`assign` with ``scan`` bound to ``scanner`` (looked up in ``namespace``), named
+    ``name`` (numba's on-disk cache tells the variants apart by it)."""
+    fn = FunctionType(assign.__code__, {**namespace, "scan": scanner}, name)
+    fn.__qualname__ = name
+    return fn
+
+
+assign_binary = _variant("assign_binary", scan_binary, globals())
+assign_float = _variant("assign_float", scan_float, globals())
 
 
 def freeze(ids: np.ndarray, keys: np.ndarray, rows: np.ndarray, r_start: np.ndarray, r_fill: np.ndarray,
@@ -298,7 +283,9 @@ def _compile() -> SimpleNamespace:
 
     for helper in ("put", "current", "scan_binary", "scan_float"):
         g[helper] = rebind(helper)
-    ns = SimpleNamespace(**{name: rebind(name) for name in _NAMES})
+    ns = SimpleNamespace(**{name: rebind(name) for name in _NAMES if not name.startswith("assign_")})
+    ns.assign_binary = jit(_variant("assign_binary", g["scan_binary"], g))
+    ns.assign_float = jit(_variant("assign_float", g["scan_float"], g))
     _warm(ns)
     return ns
 

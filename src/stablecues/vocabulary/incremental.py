@@ -377,9 +377,9 @@ class IncrementalVocabulary:
             if self._float:
                 q = np.ascontiguousarray(d, np.float32)
                 _kernels().assign_float(keys, q, *pl, self._alive, self._words, self.threshold ** 2, out)
-            else:
-                thr = int(self.threshold)
-                _kernels().assign_binary(keys, as_words(d), *pl, self._alive, self._words, thr, out)
+            else:  # within the threshold: closer than one bit more
+                bound = int(self.threshold) + 1
+                _kernels().assign_binary(keys, as_words(d), *pl, self._alive, self._words, bound, out)
         out.flags.writeable = False
         self._cache = (np.array(d), self._version, out, keys)  # a copy: the caller may reuse its array
         return out, keys
