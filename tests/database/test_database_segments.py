@@ -362,6 +362,56 @@ def test_merge_in_memory_drops_removed_entries_and_shifts_ids(
     assert np.array_equal(weights, all_w[keep][order])
 
 
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+@pytest.mark.parametrize("drop", [False, True])
+@pytest.mark.parametrize("to_file", [False, True])
+def test_merge_of_words_spread_over_a_large_id_space_is_sorted_not_counted(
+    engine: str, drop: bool, to_file: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Word ids spread over a space far larger than the postings (an incremental vocabulary's
+    2^22 ids) are merged by a stable sort of the word tables, never by arrays the size of the
+    space, and give the segment a merge by counting gives."""
+    if engine == "compiled":
+        pytest.importorskip("numba")
+    spread, n_words = 3001, N_WORDS * 3001
+    monkeypatch.setattr(segments, "CSR_MIN", 1 << 30)
+    parts = [random_segment(20 + 10 * s, seed=s, lo=sum(20 + 10 * k for k in range(s))) for s in range(3)]
+    n = parts[-1].hi
+    wide = [Segment(p.lo, p.hi, p.postings, (p.words * spread).astype(np.int32), None, p.sessions)
+            for p in parts]  # type: ignore[operator]
+    alive = np.ones(n, bool)
+    if drop:
+        alive[[0, 7, 21, n - 1]] = False
+    shift = 1000 if drop else 0
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("counted over the id space")
+
+    monkeypatch.setattr(segments, "_counting_sort", refuse)
+    monkeypatch.setattr(segments, "merge_runs", refuse)
+
+    def sink(lo: int, hi: int, c: bool, t: int) -> segments.Sink:
+        if to_file:
+            return FileSink(tmp_path / "m.seg", UUID, lo, hi, c, n_words, fsync=False, total=t)
+        return segments.MemorySink(lo, hi, c, n_words, t)
+
+    for chunk in (50, 1 << 20):  # many chunks, and one spanning every word
+        job = MergeJob(wide, sink, n_words, chunk=chunk, alive=alive if drop else None, shift=shift,
+                       engine=engine)
+        while not job.step():
+            pass
+        out = job.result
+        assert out is not None and out.words is not None and (out.lo, out.hi) == (shift, shift + n)
+        all_words = np.concatenate([p.words for p in wide])  # type: ignore[misc]
+        all_ent, all_w = split(np.concatenate([p.postings for p in wide]))
+        keep = alive[all_ent]
+        order = np.lexsort((all_ent[keep], all_words[keep]))
+        assert np.array_equal(out.words, all_words[keep][order])
+        ent, weights = split(out.postings)
+        assert np.array_equal(ent, all_ent[keep][order] + shift)
+        assert np.array_equal(weights, all_w[keep][order])
+
+
 def test_merge_runs_refuses_counts_that_do_not_match_the_postings() -> None:
     """A corrupt word table never reaches the compiled copy (which trusts its bounds)."""
     with pytest.raises(DatabaseError, match="counts 4 postings where 1 are stored"):

@@ -290,6 +290,9 @@ class Sink(Protocol):
         """Postings of words ``w0 .. w0 + len(counts) - 1``, ``counts[i]`` of word ``w0 + i``;
         each append's words follow the previous one's."""
 
+    def append_table(self, words: np.ndarray, postings: np.ndarray) -> None:
+        """Postings with the word of each, in word order (a word-form segment only)."""
+
     def finish(self, sessions: np.ndarray) -> Segment: ...
 
     def abort(self) -> None: ...
@@ -312,13 +315,26 @@ class MemorySink:
     def __init__(self, lo: int, hi: int, csr: bool, n_words: int, capacity: int) -> None:
         self.lo, self.hi, self.csr, self.n_words = lo, hi, csr, n_words
         self.postings = np.empty(capacity, "<i8")
-        self.counts = np.zeros(n_words, np.int64)
+        # a CSR table counts every word; a word-form one is the word of each posting, filled as
+        # they arrive (nothing the size of the vocabulary: an incremental vocabulary's id space
+        # is 2^22 words, and a table expanded from its counts cost every merge ~10 ms)
+        self.counts: np.ndarray | None = np.zeros(n_words, np.int64) if csr else None
+        self.words: np.ndarray | None = None if csr else np.empty(capacity, "<i4")
         self.size = 0
 
     def append(self, w0: int, counts: np.ndarray, postings: np.ndarray) -> None:
         n = postings.shape[0]
         self.postings[self.size : self.size + n] = postings
         self.placed(w0, counts, n)
+
+    def append_table(self, words: np.ndarray, postings: np.ndarray) -> None:
+        """Postings with the word of each (word form only; each append's words follow the
+        previous one's)."""
+        n = postings.shape[0]
+        assert self.words is not None
+        self.words[self.size : self.size + n] = words
+        self.postings[self.size : self.size + n] = postings
+        self.size += n
 
     def reserve(self, n: int) -> np.ndarray:
         """Where the next ``n`` postings go, for a merge to write them in place (then
@@ -327,17 +343,24 @@ class MemorySink:
 
     def placed(self, w0: int, counts: np.ndarray, n: int) -> None:
         """``n`` postings of words ``w0 ..`` written in place at :meth:`reserve`'s view."""
+        if self.counts is not None:
+            self.counts[w0 : w0 + counts.shape[0]] += counts
+        else:
+            assert self.words is not None
+            self.words[self.size : self.size + n] = _table(counts, False, w0)
         self.size += n
-        self.counts[w0 : w0 + counts.shape[0]] += counts
 
     def finish(self, sessions: np.ndarray) -> Segment:
         post = self.postings[: self.size]
         if self.size < self.postings.shape[0] // 2:
             post = post.copy()
-        table = _table(self.counts, self.csr)
-        if self.csr:
-            return Segment(self.lo, self.hi, post, None, table, sessions)
-        return Segment(self.lo, self.hi, post, table, None, sessions)
+        if self.counts is not None:
+            return Segment(self.lo, self.hi, post, None, _table(self.counts, True), sessions)
+        assert self.words is not None
+        words = self.words[: self.size]
+        if self.size < self.words.shape[0] // 2:
+            words = words.copy()
+        return Segment(self.lo, self.hi, post, words, None, sessions)
 
     def abort(self) -> None:
         pass
@@ -613,6 +636,19 @@ class FileSink:
             np.cumsum(counts, out=self._indptr[w0 + 1 : w1 + 1])
             self._indptr[w0 + 1 : w1 + 1] += self.size
             self._filled = w1
+        self._write(postings)
+        self.size += n
+
+    def append_table(self, words: np.ndarray, postings: np.ndarray) -> None:
+        """Postings with the word of each (word form only; each append's words follow the
+        previous one's)."""
+        n = postings.shape[0]
+        assert self._words is not None
+        if self.size + n > self._words.shape[0]:  # more than announced
+            grown = np.empty(max(2 * self._words.shape[0], self.size + n), "<i4")
+            grown[: self.size] = self._words[: self.size]
+            self._words = grown
+        self._words[self.size : self.size + n] = words
         self._write(postings)
         self.size += n
 
@@ -1029,7 +1065,10 @@ class MergeJob:
             else:
                 words = seg.words if path is None or tables is None else tables[i]
                 assert words is not None
-                a, b = int(np.searchsorted(words, w0, "left")), int(np.searchsorted(words, w1, "left"))
+                # the bounds as the table's own type: a Python int made NumPy 2.4 cast the whole table (7 ms
+                # for 5M words)
+                a = int(np.searchsorted(words, words.dtype.type(w0), "left"))
+                b = int(np.searchsorted(words, words.dtype.type(w1), "left"))
                 table = words[a:b]
             if b > a:
                 post = seg.postings[a:b] if seg.path is None else _pread(seg.path, HEADER_SIZE + 8 * a, b - a)
@@ -1072,6 +1111,11 @@ class MergeJob:
     def _merge_next(self, sink: Sink, bounds: list[int], parts: Any) -> None:
         w0, w1 = bounds[self.next], bounds[self.next + 1]
         self.next += 1
+        if not self.csr:
+            got = self._sparse(w0, w1, parts)
+            if got is not None:
+                sink.append_table(*got)
+                return
         # a memory sink takes the merge in place unless postings are dropped or renumbered
         reserve = getattr(sink, "reserve", None) if self.alive is None and not self.shift else None
         w0, counts, post = self._chunk(w0, w1, reserve, parts)
@@ -1079,6 +1123,51 @@ class MergeJob:
             sink.placed(w0, counts, post.shape[0])  # type: ignore[attr-defined]
         else:
             sink.append(w0, counts, post)
+
+    def _sparse(
+        self, w0: int, w1: int, parts: list[tuple[Segment, np.ndarray, np.ndarray]] | None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Words ``w0 .. w1 - 1`` of word-form inputs merged by a stable sort of their word
+        tables, in O(P) whatever the span of words: (the word of each posting, postings), or
+        None where the span is small enough for counting (:meth:`_chunk`). An incremental
+        vocabulary's words span its whole id space (2^22): counted over it, one merge of a few
+        thousand postings cost ~10 ms."""
+        if parts is None:
+            parts = self._parts(w0, w1)
+        if not parts:
+            return np.zeros(0, "<i4"), empty_postings()
+        n = sum(p.shape[0] for _, _, p in parts)
+        if w1 - w0 <= 2 * n:
+            return None
+        for seg, table, p in parts:
+            ent = split(p)[0]
+            if (int(table[0]) < w0 or int(table[-1]) >= w1 or int(ent.min()) < seg.lo
+                    or int(ent.max()) >= seg.hi or table.shape[0] != p.shape[0]):
+                raise DatabaseError(f"{_name(seg)}: holds words or entry ids out of place (corrupt)")
+        if len(parts) == 1:
+            words, post = np.asarray(parts[0][1], "<i4"), np.asarray(parts[0][2], "<i8")
+        else:
+            # the inputs oldest first, each sorted by word: a stable sort by word keeps every
+            # word's postings in entry order, as the counting merge does
+            words = np.concatenate([t for _, t, _ in parts]).astype("<i4", copy=False)
+            post = np.concatenate([p for _, _, p in parts]).astype("<i8", copy=False)
+            radix = loaded_kernels() if requested(self.engine) != "numpy" and n > 4096 else None
+            if radix is not None:
+                sw, sp = np.empty(n, "<i4"), np.empty(n, "<i8")
+                radix.radix_words(words - np.int32(w0), post, max(int(w1 - w0 - 1).bit_length(), 1), sw, sp,
+                                  np.empty(n, "<i4"), np.empty(n, "<i8"))
+                words, post = sw + np.int32(w0), sp
+            else:
+                order = word_order(words, w1)
+                words, post = words[order], post[order]
+        if self.alive is not None:
+            keep = self.alive[split(post)[0]]
+            if not keep.all():
+                words, post = words[keep], post[keep]
+        if self.shift:
+            ent, weights = split(post)
+            post = pack_postings(ent.astype(np.int64) + self.shift, weights)
+        return words, post
 
     def _chunk(
         self, w0: int, w1: int, reserve: Callable[[int], np.ndarray] | None = None,
