@@ -25,6 +25,9 @@ Sections (``--sections``, all by default):
     time to read the words back (restore and index rebuild) at the largest size. Maps in memory
     without descriptors (the map's own costs are ``bench_scale.py``'s): what is measured is
     what the vocabulary adds.
+``index``
+    The map's inverted index alone: an add of 900 random words at the trained vocabulary's
+    96,618 words against the incremental id space of 2^22 (what the id space costs the index).
 
 Writes ``bench/results/incremental.json`` (sections not run keep their figures).
 """
@@ -343,7 +346,34 @@ def bench_scale(work: Path, network: bool, sizes: tuple[int, ...] = SCALE_SIZES,
     return out
 
 
-SECTIONS = {"grid": bench_grid, "sets": bench_sets, "scale": bench_scale}
+def bench_index(work: Path, network: bool, n: int = 20_000) -> dict[str, Any]:
+    """The map's inverted index alone, adding ``n`` entries of 900 words drawn at random (memory,
+    inline maintenance, one core): the trained vocabulary's 96,618 words against the
+    incremental one's id space of 2^22, with the words used spanning 96,618 ids or all of them
+    (ids given again after they ran out). What an add costs the index whatever the vocabulary."""
+    del work, network
+    from stablecues.database import InvertedIndex
+    from stablecues.vocabulary import Scoring
+
+    out: dict[str, Any] = {"entries": n, "words_per_entry": 900, "timed": "entries 500 .. n"}
+    for label, n_words, span in (("96618_words", 96_618, 96_618), ("2^22_ids_span_96618", 1 << 22, 96_618),
+                                 ("2^22_ids_span_all", 1 << 22, 1 << 22)):
+        rng = np.random.default_rng(0)
+        index = InvertedIndex(n_words, Scoring.L1)
+        times = []
+        for _ in range(n):
+            words = np.unique(rng.integers(0, span, 900)).astype(np.int32)
+            weights = rng.random(words.shape[0]).astype(np.float32)
+            t = time.perf_counter()
+            index.add(words, weights)
+            times.append((time.perf_counter() - t) * 1e3)
+        out[label] = _stats(times[500:])
+        print(f"    {label:22s} add {out[label]['mean']:.3f} ms (p99 {out[label]['p99']:.2f}, "
+              f"max {out[label]['max']:.1f})", flush=True)
+    return out
+
+
+SECTIONS = {"grid": bench_grid, "sets": bench_sets, "scale": bench_scale, "index": bench_index}
 _GRID_LINE = re.compile(r"^\s+(\S+)\s+(\w+) t([0-9.]+)_(\d+)x(\d+)\s+R@100P ([0-9.]+) \(TP (\d+) FP (\d+)\)"
                         r"\s+words\s+(\d+)\s+([0-9.]+) ms/frame")
 

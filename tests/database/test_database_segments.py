@@ -159,9 +159,21 @@ def test_corrupt_tables_are_refused_and_bodies_found_by_the_checksum(csr: bool, 
     path = tmp_path / "seg-00000001.sci"
     seg = write(random_segment(), path, csr)
     table_at = HEADER_SIZE + 8 * seg.size
-    corrupt(path, table_at + 8, struct.pack("<q", -5) if csr else struct.pack("<i", 10**6))
+    # the ends of the table are checked at open (O(1)) ...
+    end_at = table_at + (8 * N_WORDS if csr else 4 * (seg.size - 1))
+    corrupt(path, end_at, struct.pack("<q", -5) if csr else struct.pack("<i", 10**6))
     with pytest.raises(DatabaseError, match="corrupt"):
         map_segment(path, UUID, N_WORDS)
+    # ... the rest before the file first answers: a table out of order under a checksum made
+    # to fit it (a hostile file) is refused by the body's check, naming the file
+    hostile = tmp_path / "seg-00000003.sci"
+    made = write(random_segment(), hostile, csr)
+    corrupt(hostile, table_at + 8, struct.pack("<q", 10**6) if csr else struct.pack("<i", N_WORDS - 1))
+    body = hostile.read_bytes()[HEADER_SIZE:]
+    form = segments.FORM_CSR if csr else segments.FORM_WORDS
+    corrupt(hostile, 0, header_bytes(form, UUID, N_WORDS, made.lo, made.hi, made.size, zlib.crc32(body)))
+    problem = verify_segment(map_segment(hostile, UUID, N_WORDS), 50)
+    assert problem is not None and "corrupt" in problem and str(hostile) in problem
     path2 = tmp_path / "seg-00000002.sci"
     write(random_segment(), path2, csr)
     corrupt(path2, HEADER_SIZE + 8 * 10 + 4, b"\x7f\xc0\x00\x00")  # a NaN weight in the body
