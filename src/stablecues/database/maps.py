@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import DatabaseError
 from ..vocabulary import Vocabulary
 from .files import index_dir, remove_database
-from .segments import MergeJob, Segment, ensure_verified
+from .segments import MergeJob, Segment, ensure_all_verified
 from .store import Database, DatabaseConfig
 
 
@@ -99,10 +99,10 @@ def _merge_into(target: Database, sources: list[Database], out: Path) -> MergeRe
         offsets.append(entry_shift)
         session_offsets.append(session_shift)
         _copy_rows(target, src, entry_shift, session_shift)
+        # the bodies and tables checked first (in parallel): a damaged file copied would come
+        # out under a fresh checksum
+        ensure_all_verified(src.index.segments, len(src))
         for seg in src.index.segments:
-            # its body and tables checked first: a damaged file copied would come out under a
-            # fresh checksum
-            ensure_verified(seg, len(src))
             segments.append(_copy_segment(target, seg, entry_shift, session_shift))
         sessions = src.index.sessions()
         entry_shift += len(src)

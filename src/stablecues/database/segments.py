@@ -224,21 +224,7 @@ def sort_blocks(
         # a table of words per posting: the sort gives it, a counting sort would expand it
         words = np.concatenate([w for w, _ in blocks]) if len(blocks) > 1 else blocks[0][0]
         postings = np.concatenate([p for _, p in blocks]) if len(blocks) > 1 else blocks[0][1]
-        # by radix when the kernels are loaded anyway (never loaded for this): at 10^6 words
-        # a group of 262k postings took 6-7 ms to sort by keys in a 10^6 build, 1-2 by radix
-        radix = loaded_kernels() if requested(engine) != "numpy" and words.shape[0] > 4096 else None
-        if radix is not None:
-            if words.shape[0] and (int(words.min()) < 0 or int(words.max()) >= n_words):
-                raise ValueError(f"postings to index hold words outside 0..{n_words - 1}")
-            sw, sp = np.empty_like(words, np.int32), np.empty_like(postings, "<i8")
-            n = words.shape[0]
-            radix.radix_words(np.ascontiguousarray(words, np.int32), np.ascontiguousarray(postings, "<i8"),
-                              max(int(n_words - 1).bit_length(), 1), sw, sp,
-                              _work(scratch, "words", n, np.int32), _work(scratch, "postings", n, "<i8"))
-        else:
-            order = word_order(words, n_words)
-            sw = np.ascontiguousarray(words[order], np.int32)
-            sp = postings[order]
+        sw, sp = _by_word(words, postings, n_words, engine, scratch)
         if csr:
             return Segment(lo, hi, sp, None, _indptr(sw, n_words), sessions)
         return Segment(lo, hi, sp, sw, None, sessions)
@@ -263,6 +249,26 @@ def _work(scratch: dict[str, np.ndarray] | None, key: str, n: int, dtype: DTypeL
         if scratch is not None:
             scratch[key] = have
     return have[:n]
+
+
+def _by_word(words: np.ndarray, postings: np.ndarray, n_words: int, engine: str,
+             scratch: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) words in ``0 .. n_words - 1`` and their postings, sorted stably by word: by radix
+    when the compiled kernels are loaded anyway (never loaded for this: at 10^6 words a group
+    of 262k postings took 6-7 ms to sort by keys in a 10^6 build, 1-2 by radix), else by
+    :func:`word_order`."""
+    n = words.shape[0]
+    radix = loaded_kernels() if requested(engine) != "numpy" and n > 4096 else None
+    if radix is None:
+        order = word_order(words, n_words)
+        return np.ascontiguousarray(words[order], np.int32), postings[order]
+    if int(words.min()) < 0 or int(words.max()) >= n_words:  # a digit is masked: the order would be wrong
+        raise ValueError(f"postings to index hold words outside 0..{n_words - 1}")
+    sw, sp = np.empty(n, np.int32), np.empty(n, "<i8")
+    radix.radix_words(np.ascontiguousarray(words, np.int32), np.ascontiguousarray(postings, "<i8"),
+                      max(int(n_words - 1).bit_length(), 1), sw, sp,
+                      _work(scratch, "words", n, np.int32), _work(scratch, "postings", n, "<i8"))
+    return sw, sp
 
 
 def word_order(words: np.ndarray, n_words: int) -> np.ndarray:
@@ -1157,15 +1163,8 @@ class MergeJob:
             # word's postings in entry order, as the counting merge does
             words = np.concatenate([t for _, t, _ in parts]).astype("<i4", copy=False)
             post = np.concatenate([p for _, _, p in parts]).astype("<i8", copy=False)
-            radix = loaded_kernels() if requested(self.engine) != "numpy" and n > 4096 else None
-            if radix is not None:
-                sw, sp = np.empty(n, "<i4"), np.empty(n, "<i8")
-                radix.radix_words(words - np.int32(w0), post, max(int(w1 - w0 - 1).bit_length(), 1), sw, sp,
-                                  np.empty(n, "<i4"), np.empty(n, "<i8"))
-                words, post = sw + np.int32(w0), sp
-            else:
-                order = word_order(words, w1)
-                words, post = words[order], post[order]
+            words, post = _by_word(words - np.int32(w0), post, w1 - w0, self.engine)
+            words += np.int32(w0)
         if self.alive is not None:
             keep = self.alive[split(post)[0]]
             if not keep.all():
