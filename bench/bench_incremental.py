@@ -269,6 +269,16 @@ def _time_growth(pool: list[Features], sizes: tuple[int, ...], explore: bool, in
     add: dict[int, list[float]] = {s: [] for s in sizes}
     query: dict[int, list[float]] = {s: [] for s in sizes}
     out: dict[str, Any] = {}
+    rebuilds: list[float] = []  # ms of each rebuild of the word index (a compaction)
+    if incremental:
+        compact = voc._compact
+
+        def timed_compact() -> None:
+            t = time.perf_counter()
+            compact()
+            rebuilds.append((time.perf_counter() - t) * 1e3)
+
+        voc._compact = timed_compact
     t_all = time.perf_counter()
     for i, feats in enumerate(_trajectory(pool, last, explore)):
         timed = [s for s, (a, b) in windows.items() if a <= i < b]
@@ -294,6 +304,8 @@ def _time_growth(pool: list[Features], sizes: tuple[int, ...], explore: bool, in
                 "words_live": voc.words_live if incremental else voc.n_words,
                 "wall_s": round(time.perf_counter() - t_all, 1)}
             if incremental:
+                out[str(i + 1)]["index_rebuilds"] = {"so_far": len(rebuilds),
+                                                     "last_ms": [round(x, 1) for x in rebuilds[-5:]]}
                 out[str(i + 1)]["words_made"] = voc.words_made
                 out[str(i + 1)]["vocabulary_mb"] = round(voc.nbytes / 2**20, 1)
             got = out[str(i + 1)]

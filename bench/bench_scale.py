@@ -36,6 +36,7 @@ import argparse
 import contextlib
 import gc
 import json
+import resource
 import shutil
 import subprocess
 import sys
@@ -260,7 +261,7 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
     kept = list(np.load(kept_path)) if kept_path.exists() else []
     times = []
     # [entry, wall ms, CPU ms of the adding thread, ms of full garbage collections (any thread)
-    # inside it] of every add over 10 ms
+    # inside it, what ran inside it and the adding thread's page faults] of every add over 10 ms
     slow = []
     # [start, end, adds done before it] of every collection of the oldest generation
     full_gc: list[list[float]] = []
@@ -274,12 +275,36 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
                 full_gc[-1][1] = time.perf_counter()
 
     gc.callbacks.append(on_gc)
+    # what ran inside an add, [what, ms]: the index's inline maintenance steps (a sort of the
+    # latest blocks or a merge step, with their postings), its seals, the entry log's append;
+    # kept for the slow adds
+    parts: list[list[Any]] = []
+
+    def timed(obj: Any, name: str, what: Any) -> None:
+        method = getattr(obj, name)
+
+        def run(*args: Any, **kwargs: Any) -> Any:
+            t = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                parts.append([what(*args), round(1e3 * (time.perf_counter() - t), 2)])
+
+        setattr(obj, name, run)
+
+    timed(db.index, "_advance", lambda job: (f"sort {sum(b.words.size for b in job.blocks)}" if job.blocks
+                                               else f"merge step, {job.remaining} left"))
+    timed(db.index, "_seal", lambda: "seal")
+    if db._entries is not None:
+        timed(db._entries, "add", lambda row: "entry log")
     load0 = load()
     deadline = time.perf_counter() + budget_s
     while i < n_total and time.perf_counter() < deadline:
         d = maker.next()
         bow, fvec = voc.transform(d)
         feats = fake_features(d, rng)  # the direct index is stored; these only when descriptors
+        parts.clear()
+        faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
         c = time.thread_time()
         t = time.perf_counter()
         db.add(bow, fvec, feats, timestamp=float(i))
@@ -288,7 +313,9 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
         if dt > 0.010:
             in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b, _ in full_gc[-3:])
             cpu = time.thread_time() - c
-            slow.append([i, round(1e3 * dt, 2), round(1e3 * cpu, 2), round(1e3 * in_gc, 2)])
+            faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - faults
+            slow.append([i, round(1e3 * dt, 2), round(1e3 * cpu, 2), round(1e3 * in_gc, 2),
+                         [*parts, ["page faults", faults]]])
         if i % max(n_total // 200, 1) == 0:
             kept.append(d)
         i += 1

@@ -172,6 +172,43 @@ def test_the_words_do_not_depend_on_how_the_index_is_laid_out(orb_frames: list[n
     assert digests[0] == digests[1] == digests[2]
 
 
+def run_slots(voc: IncrementalVocabulary) -> np.ndarray:
+    """The slots in use in the runs of every table."""
+    start, fill = voc._runs["r_start"], voc._runs["r_fill"]
+    return np.concatenate([np.arange(start[b], start[b] + fill[b]) for b in range(fill.size)])
+
+
+def buckets(voc: IncrementalVocabulary) -> list[list[int]]:
+    """The word ids in each bucket's run (sorted), every table; the index holds no page."""
+    assert int(voc._pool["state"][0]) == 0
+    start, fill, ids = (voc._runs[a] for a in ("r_start", "r_fill", "r_ids"))
+    return [sorted(ids[start[b]: start[b] + fill[b]].tolist()) for b in range(fill.size)]
+
+
+def test_a_compacted_index_holds_what_a_fresh_build_does(orb_frames: list[np.ndarray]) -> None:
+    """The index compacted from itself (words purged, words in pages, ids given again to new
+    words while the old words' slots are still linked) holds in each bucket exactly the live
+    words that a build from the words alone puts there, each word's copy its descriptor."""
+    rng = np.random.default_rng(8)
+    voc = IncrementalVocabulary(ORB, purge_after=2, id_space=3000)
+    stale = 0
+    for k in range(40):
+        voc.learn(flip(orb_frames[k % 12], 3 * (k // 12), rng))
+        if k % 5 != 4:
+            continue
+        ids, desc = voc._runs["r_ids"], voc._runs["r_desc"]
+        used = run_slots(voc)
+        moved = (desc[used] != voc._words[ids[used]]).any(axis=1)  # a slot of an id given again
+        stale += int((voc._alive[ids[used]].astype(bool) & moved).sum())
+        voc._compact()
+        got = buckets(voc)
+        used = run_slots(voc)
+        assert np.array_equal(voc._runs["r_desc"][used], voc._words[voc._runs["r_ids"][used]])
+        voc._freeze()
+        assert got == buckets(voc), f"image {k}"
+    assert stale > 0 and voc.words_made > 3000  # old slots of ids given again were dropped
+
+
 def test_ids_of_purged_words_are_given_again_once_all_are_used(orb_frames: list[np.ndarray],
                                                                tmp_path: Path,
                                                                caplog: pytest.LogCaptureFixture) -> None:

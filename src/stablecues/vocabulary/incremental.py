@@ -13,10 +13,11 @@ descriptors:
 * **Found through an index kept as words arrive.** Locality-sensitive hash tables
   (:mod:`._incremental`): a descriptor's candidates are the words sharing a bucket with it. Each
   bucket is one contiguous run of slots with room to spare; a new word goes into its bucket's
-  run in every table, O(tables), or into an overflow page where the run is full. The runs are
-  rebuilt from the live words (O(live words x tables)) once the words purged and those that
-  overflowed since reach an eighth of those they were built with: amortised, a bounded number
-  of copies per word. The layout changes how fast a word is found, never which.
+  run in every table, O(tables), or into an overflow page where the run is full. The index is
+  rebuilt from itself (its slots read in order, those of live words copied into new runs:
+  O(slots)) once the words purged and those that overflowed since reach an eighth of those it
+  was built with: amortised, a bounded number of copies per word. The layout changes how fast
+  a word is found, never which.
 * **Purged when they do not come back.** A word seen in a single image and not seen again for
   ``purge_after`` images is dropped (iBoW-LCD keeps the words that recur; a word made by noise
   or a passing object never does). The old image's posting of it stays, inert.
@@ -216,6 +217,7 @@ class IncrementalVocabulary:
         self._indexed = 0  # live words when the runs were made
         self._overflow = 0  # slots in overflow pages since
         self._dead_linked = 0  # purged words still in the index
+        self._unlinked: list[np.ndarray] = []  # ids purged since the index was rebuilt (still in it)
         self._since_save = 0
         # float keys: signs of projections of the descriptors less this centre, the mean of the
         # first image learned (learned descriptors sit in a cone: planes through the origin put
@@ -496,7 +498,7 @@ class IncrementalVocabulary:
         if self.purge_after and self._images % 16 == 0:
             self._purge()
         if self._overflow // self.tables + self._dead_linked > max(self._indexed // FREEZE_SHARE, FREEZE_MIN):
-            self._freeze()
+            self._compact()
         return words
 
     def _purge(self) -> None:
@@ -519,10 +521,37 @@ class IncrementalVocabulary:
         self._live -= int(gone.size)
         self._version += 1
         self._dead_linked += int(gone.size)
+        self._unlinked.append(gone)
+
+    def _compact(self) -> None:
+        """Rebuild the word index from itself: each bucket one run with room to spare, no
+        overflow page, no purged word (the words found do not change: only how fast). Reads
+        the runs and pages in order and copies the slots of live words: at 10^5 entries of a
+        patrol (127,000 live words) about 4x faster than :meth:`_freeze`, which computes every
+        word's keys and scatters it into every table."""
+        mod = _kernel_module()
+        # 1: a live word, its slots its own; 2: a live word whose id was a purged word's since the
+        # last rebuild (that word's slots are still in: a slot is the live word's if it holds its
+        # descriptor); 0: purged
+        flags = self._alive.copy()
+        if self._unlinked:
+            gone = np.concatenate(self._unlinked)
+            flags[gone[flags[gone] != 0]] = 2
+        old = [self._runs[a] for a in mod.RUN_ARGS] + [self._pool[a] for a in mod.POOL_ARGS]
+        counts = np.zeros(self.tables << self.bits, np.int64)
+        k = _kernels()
+        k.compact(*old, flags, self._words, counts, counts, old[2], old[3], False)
+        width = self._words.shape[1]
+        runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
+        k.compact(*old, flags, self._words, *(runs[a] for a in mod.RUN_ARGS), True)
+        self._runs = runs
+        self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
+        self._indexed, self._overflow, self._dead_linked = self._live, 0, 0
+        self._unlinked = []
 
     def _freeze(self) -> None:
-        """Rebuild the word index from the live words: each bucket one run with room to spare,
-        no overflow page, no purged word (the words found do not change: only how fast)."""
+        """Build the word index from the live words (a restore): each bucket one run with room
+        to spare, no overflow page."""
         mod = _kernel_module()
         ids = np.flatnonzero(self._alive[: self._made]).astype(np.int32)
         keys = self._word_keys(ids)
@@ -534,6 +563,7 @@ class IncrementalVocabulary:
         _kernels().freeze(ids, keys, rows, *(self._runs[a] for a in mod.RUN_ARGS))
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = int(ids.size), 0, 0
+        self._unlinked = []
 
     def _word_keys(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids), tables) int32 the keys of words ``ids``: kept (float), or the words' bits."""
