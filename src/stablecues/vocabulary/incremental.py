@@ -530,20 +530,22 @@ class IncrementalVocabulary:
         patrol (127,000 live words) about 4x faster than :meth:`_freeze`, which computes every
         word's keys and scatters it into every table."""
         mod = _kernel_module()
-        # 1: a live word, its slots its own; 2: a live word whose id was a purged word's since the
-        # last rebuild (that word's slots are still in: a slot is the live word's if it holds its
-        # descriptor); 0: purged
-        flags = self._alive.copy()
+        # bit c of keep: word c is live, its slots its own; of check: word c is live and its id
+        # was a word's purged since the last rebuild (whose slots are still in: a slot is the
+        # live word's if it holds its descriptor)
+        check = np.zeros(self._alive.shape[0], bool)
         if self._unlinked:
             gone = np.concatenate(self._unlinked)
-            flags[gone[flags[gone] != 0]] = 2
+            check[gone[self._alive[gone] != 0]] = True
+        keep = np.packbits((self._alive != 0) & ~check, bitorder="little")
+        check = np.packbits(check, bitorder="little")
         old = [self._runs[a] for a in mod.RUN_ARGS] + [self._pool[a] for a in mod.POOL_ARGS]
         counts = np.zeros(self.tables << self.bits, np.int64)
         k = _kernels()
-        k.compact(*old, flags, self._words, counts, counts, old[2], old[3], False)
+        k.compact(*old, keep, check, self._words, counts, counts, old[2], old[3], False)
         width = self._words.shape[1]
         runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
-        k.compact(*old, flags, self._words, *(runs[a] for a in mod.RUN_ARGS), True)
+        k.compact(*old, keep, check, self._words, *(runs[a] for a in mod.RUN_ARGS), True)
         self._runs = runs
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = self._live, 0, 0
