@@ -526,9 +526,11 @@ class IncrementalVocabulary:
     def _compact(self) -> None:
         """Rebuild the word index from itself: each bucket one run with room to spare, no
         overflow page, no purged word (the words found do not change: only how fast). Reads
-        the runs and pages in order and copies the slots of live words: at 10^5 entries of a
-        patrol (127,000 live words) about 4x faster than :meth:`_freeze`, which computes every
-        word's keys and scatters it into every table."""
+        the runs and pages in order and copies the slots of live words; no key is computed
+        again (:meth:`_freeze` computes every word's keys and scatters it into every table).
+        On the patrol of ``bench_incremental.py`` a rebuild took 14-23 ms at 10^3 entries and
+        32-56 ms at 10^4; at 10^5, with liveness looked up in a byte per id, 244-347 ms against
+        110-170 for :meth:`_freeze` (the bitmaps below are not yet timed there)."""
         mod = _kernel_module()
         # bit c of keep: word c is live, its slots its own; of check: word c is live and its id
         # was a word's purged since the last rebuild (whose slots are still in: a slot is the
