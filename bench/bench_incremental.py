@@ -39,6 +39,7 @@ import dataclasses
 import json
 import os
 import re
+import resource
 import shutil
 import sys
 import tempfile
@@ -76,7 +77,9 @@ GRID = {  # preset -> (thresholds, (tables, bits) pairs, sets)
 GRID_PRESETS = list(GRID)  # --grid-presets
 SETS_PRESETS = list(PRESETS)  # --sets-presets
 SCALE_SIZES = (1_000, 10_000, 100_000)
-SCALE_WINDOW = 200  # entries timed around each size
+# entries timed before each size (half the size at most): several rebuilds of the word index
+# fall in it at every size (one every 200-300 adds at 10^5), so its mean is the amortised cost
+SCALE_WINDOW = 1000
 FLIP_BITS = 8  # bits flipped per descriptor per patrol lap
 WORLD_MASK_BITS = 96  # bits of each exploring lap's mask
 
@@ -265,18 +268,20 @@ def _time_growth(pool: list[Features], sizes: tuple[int, ...], explore: bool, in
     voc: Any = IncrementalVocabulary(kind) if incremental else default_vocabulary("orb")
     db = Database(voc, config=DatabaseConfig(store_descriptors=False))
     last = max(sizes)
-    windows = {s: (max(s - SCALE_WINDOW, 0), s) for s in sizes}
+    windows = {s: (s - min(SCALE_WINDOW, s // 2), s) for s in sizes}
     add: dict[int, list[float]] = {s: [] for s in sizes}
     query: dict[int, list[float]] = {s: [] for s in sizes}
     out: dict[str, Any] = {}
-    rebuilds: list[float] = []  # ms of each rebuild of the word index (a compaction)
+    rebuilds: list[tuple[float, int]] = []  # ms and page faults of each rebuild of the word index
     if incremental:
         compact = voc._compact
 
         def timed_compact() -> None:
+            f = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             t = time.perf_counter()
             compact()
-            rebuilds.append((time.perf_counter() - t) * 1e3)
+            ms = (time.perf_counter() - t) * 1e3
+            rebuilds.append((ms, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f))
 
         voc._compact = timed_compact
     t_all = time.perf_counter()
@@ -305,7 +310,8 @@ def _time_growth(pool: list[Features], sizes: tuple[int, ...], explore: bool, in
                 "wall_s": round(time.perf_counter() - t_all, 1)}
             if incremental:
                 out[str(i + 1)]["index_rebuilds"] = {"so_far": len(rebuilds),
-                                                     "last_ms": [round(x, 1) for x in rebuilds[-5:]]}
+                                                     "last_ms": [round(x, 1) for x, _ in rebuilds[-5:]],
+                                                     "last_page_faults": [f for _, f in rebuilds[-5:]]}
                 out[str(i + 1)]["words_made"] = voc.words_made
                 out[str(i + 1)]["vocabulary_mb"] = round(voc.nbytes / 2**20, 1)
             got = out[str(i + 1)]

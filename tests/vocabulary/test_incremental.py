@@ -27,6 +27,7 @@ from stablecues.groundtruth import load_ground_truth
 from stablecues.imageio import read_image
 from stablecues.types import DescriptorKind
 from stablecues.vocabulary import _incremental
+from stablecues.vocabulary._incremental import held
 from stablecues.vocabulary.incremental import IncrementalVocabulary, words_path
 
 ORB = DescriptorKind("binary", 32)
@@ -191,7 +192,7 @@ def test_a_compacted_index_holds_what_a_fresh_build_does(orb_frames: list[np.nda
     words that a build from the words alone puts there, each word's copy its descriptor."""
     rng = np.random.default_rng(8)
     voc = IncrementalVocabulary(ORB, purge_after=2, id_space=3000)
-    stale = 0
+    stale = reused = 0
     for k in range(40):
         voc.learn(flip(orb_frames[k % 12], 3 * (k // 12), rng))
         if k % 5 != 4:
@@ -200,13 +201,19 @@ def test_a_compacted_index_holds_what_a_fresh_build_does(orb_frames: list[np.nda
         used = run_slots(voc)
         moved = (desc[used] != voc._words[ids[used]]).any(axis=1)  # a slot of an id given again
         stale += int((voc._alive[ids[used]].astype(bool) & moved).sum())
+        spare = voc._spare
+        if spare is not None:  # the runs the rebuild may write into: what they held must not matter
+            held(spare["r_ids"])[:] = rng.integers(0, 3000, held(spare["r_ids"]).shape)
+            held(spare["r_desc"])[:] = rng.integers(0, 2**63, held(spare["r_desc"]).shape, dtype=np.uint64)
         voc._compact()
+        reused += spare is not None and held(voc._runs["r_ids"]) is held(spare["r_ids"])
         got = buckets(voc)
         used = run_slots(voc)
         assert np.array_equal(voc._runs["r_desc"][used], voc._words[voc._runs["r_ids"][used]])
         voc._freeze()
         assert got == buckets(voc), f"image {k}"
     assert stale > 0 and voc.words_made > 3000  # old slots of ids given again were dropped
+    assert reused > 0  # rebuilds wrote into the runs of the one before
 
 
 def test_ids_of_purged_words_are_given_again_once_all_are_used(orb_frames: list[np.ndarray],

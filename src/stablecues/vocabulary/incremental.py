@@ -214,6 +214,8 @@ class IncrementalVocabulary:
         mod = _kernel_module()
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._runs = mod.runs(self.tables, self.bits, np.zeros(self.tables << self.bits), width, self._dtype)
+        # the runs before the last rebuild: the next rebuild writes into them
+        self._spare: dict[str, np.ndarray] | None = None
         self._indexed = 0  # live words when the runs were made
         self._overflow = 0  # slots in overflow pages since
         self._dead_linked = 0  # purged words still in the index
@@ -264,10 +266,13 @@ class IncrementalVocabulary:
 
     @property
     def nbytes(self) -> int:
-        """Memory held: the words' rows, counts and keys, and the index (runs and pages)."""
-        arrays = [self._words, self._df, self._last, self._alive, self._wkeys, *self._runs.values(),
-                  *self._pool.values()]
-        return sum(int(a.nbytes) for a in arrays)
+        """Memory held: the words' rows, counts and keys, and the index (runs, the spare runs
+        the next rebuild writes into, and pages)."""
+        held = _kernel_module().held
+        runs = [*self._runs.values(), *(self._spare or {}).values()]
+        arrays = [self._words, self._df, self._last, self._alive, self._wkeys, *self._pool.values()]
+        return sum(int(a.nbytes) for a in arrays) + sum(int(a.nbytes) for a in {id(held(r)): held(r)
+                                                                                 for r in runs}.values())
 
     def info(self) -> IncrementalInfo:
         return IncrementalInfo(str(self.kind), self._images, self._made_total, self._live, self.id_space,
@@ -528,9 +533,9 @@ class IncrementalVocabulary:
         overflow page, no purged word (the words found do not change: only how fast). Reads
         the runs and pages in order and copies the slots of live words; no key is computed
         again (:meth:`_freeze` computes every word's keys and scatters it into every table).
-        On the patrol of ``bench_incremental.py`` a rebuild took 14-23 ms at 10^3 entries and
-        32-56 ms at 10^4; at 10^5, with liveness looked up in a byte per id, 244-347 ms against
-        110-170 for :meth:`_freeze` (the bitmaps below are not yet timed there)."""
+        The new runs are written into those of the rebuild before (``_spare``), whose pages
+        are mapped already: on the patrol of ``bench_incremental.py`` at 10^5 entries a rebuild
+        took 41-51 ms so, 135-248 ms writing fresh memory (13-24 ms at 10^3 and 10^4)."""
         mod = _kernel_module()
         # bit c of keep: word c is live, its slots its own; of check: word c is live and its id
         # was a word's purged since the last rebuild (whose slots are still in: a slot is the
@@ -546,9 +551,9 @@ class IncrementalVocabulary:
         k = _kernels()
         k.compact(*old, keep, check, self._words, counts, counts, old[2], old[3], False)
         width = self._words.shape[1]
-        runs = mod.runs(self.tables, self.bits, counts, width, self._dtype)
+        runs = mod.runs(self.tables, self.bits, counts, width, self._dtype, self._spare)
         k.compact(*old, keep, check, self._words, *(runs[a] for a in mod.RUN_ARGS), True)
-        self._runs = runs
+        self._runs, self._spare = runs, self._runs
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = self._live, 0, 0
         self._unlinked = []
