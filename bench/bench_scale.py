@@ -244,6 +244,36 @@ def run_adds(repeat: int, n: int, baseline: str | None) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------- large maps
+def instrument(db: Any) -> list[list[Any]]:
+    """What runs inside an add, as [what, ms], appended to the list returned (the caller clears
+    it before each add): the index's inline maintenance (a sort of the latest blocks or a merge
+    step, with their postings; a merge job's start; a finished job's install and the discard of
+    what it replaced), its seals, the entry log's append."""
+    parts: list[list[Any]] = []
+
+    def timed(obj: Any, name: str, what: Any) -> None:
+        method = getattr(obj, name)
+
+        def run(*args: Any, **kwargs: Any) -> Any:
+            t = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                parts.append([what(*args), round(1e3 * (time.perf_counter() - t), 2)])
+
+        setattr(obj, name, run)
+
+    timed(db.index, "_advance", lambda job: (f"sort {sum(b.words.size for b in job.blocks)}" if job.blocks
+                                               else f"merge step, {job.remaining} left"))
+    timed(db.index, "_start", lambda inputs, *_: f"merge start, {sum(x.size for x in inputs)} postings")
+    timed(db.index, "_install", lambda job: "install")
+    timed(db.index, "_discard", lambda old: f"discard {len(old)}")
+    timed(db.index, "_seal", lambda: "seal")
+    if db._entries is not None:
+        timed(db._entries, "add", lambda row: "entry log")
+    return parts
+
+
 def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, descriptors: bool,
                 budget_s: float, seed: int) -> None:
     """Add entries to the map until it holds n_total or the time budget is spent."""
@@ -275,28 +305,7 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
                 full_gc[-1][1] = time.perf_counter()
 
     gc.callbacks.append(on_gc)
-    # what ran inside an add, [what, ms]: the index's inline maintenance steps (a sort of the
-    # latest blocks or a merge step, with their postings), its seals, the entry log's append;
-    # kept for the slow adds
-    parts: list[list[Any]] = []
-
-    def timed(obj: Any, name: str, what: Any) -> None:
-        method = getattr(obj, name)
-
-        def run(*args: Any, **kwargs: Any) -> Any:
-            t = time.perf_counter()
-            try:
-                return method(*args, **kwargs)
-            finally:
-                parts.append([what(*args), round(1e3 * (time.perf_counter() - t), 2)])
-
-        setattr(obj, name, run)
-
-    timed(db.index, "_advance", lambda job: (f"sort {sum(b.words.size for b in job.blocks)}" if job.blocks
-                                               else f"merge step, {job.remaining} left"))
-    timed(db.index, "_seal", lambda: "seal")
-    if db._entries is not None:
-        timed(db._entries, "add", lambda row: "entry log")
+    parts = instrument(db)
     load0 = load()
     deadline = time.perf_counter() + budget_s
     while i < n_total and time.perf_counter() < deadline:
@@ -389,7 +398,10 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
     maker = EntryMaker(voc, n_features=n_features, seed=10**7 + start)
     rng = np.random.default_rng(start)
     times = []
-    slow = []  # [add, wall ms, CPU ms of the adding thread] of every add over 10 ms
+    # [add, wall ms, CPU ms of the adding thread, what ran inside it and the adding thread's page
+    # faults] of every add over 10 ms
+    slow = []
+    parts = instrument(db)
     load0 = load()
     next_at = time.perf_counter()
     for i in range(n):
@@ -398,13 +410,17 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
         feats = fake_features(d, rng)
         next_at += 1.0 / hz
         time.sleep(max(next_at - time.perf_counter(), 0.0))
+        parts.clear()
+        faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
         c = time.thread_time()
         t = time.perf_counter()
         db.add(bow, fvec, feats, timestamp=float(start + i))
         dt = time.perf_counter() - t
         times.append(dt)
         if dt > 0.010:
-            slow.append([i, round(1e3 * dt, 2), round(1e3 * (time.thread_time() - c), 2)])
+            faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - faults
+            slow.append([i, round(1e3 * dt, 2), round(1e3 * (time.thread_time() - c), 2),
+                         [*parts, ["page faults", faults]]])
     db.close()
     print(json.dumps({"entries_before": start, "adds": n, "hz": hz, "add_ms": stats_ms(times),
                       "slow_adds": slow, "load": [load0, load()]}))
