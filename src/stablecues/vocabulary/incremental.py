@@ -533,9 +533,11 @@ class IncrementalVocabulary:
         overflow page, no purged word (the words found do not change: only how fast). Reads
         the runs and pages in order and copies the slots of live words; no key is computed
         again (:meth:`_freeze` computes every word's keys and scatters it into every table).
-        The new runs are written into those of the rebuild before (``_spare``), whose pages
-        are mapped already: on the patrol of ``bench_incremental.py`` at 10^5 entries a rebuild
-        took 41-51 ms so, 135-248 ms writing fresh memory (13-24 ms at 10^3 and 10^4)."""
+        The new runs are written into those of the rebuild before (``_spare``) where they fit,
+        whose pages are mapped already: on the patrol of ``bench_incremental.py`` at 10^5
+        entries a rebuild took 31-57 ms so, 135-248 ms writing fresh memory (13-24 ms at 10^3
+        and 10^4). Exploring at 10^4 entries (15.8M slots) a rebuild took 160 ms into mapped
+        runs, 2.0 s into fresh ones: the index grows there, and each rebuild needs more."""
         mod = _kernel_module()
         # bit c of keep: word c is live, its slots its own; of check: word c is live and its id
         # was a word's purged since the last rebuild (whose slots are still in: a slot is the
@@ -553,7 +555,12 @@ class IncrementalVocabulary:
         width = self._words.shape[1]
         runs = mod.runs(self.tables, self.bits, counts, width, self._dtype, self._spare)
         k.compact(*old, keep, check, self._words, *(runs[a] for a in mod.RUN_ARGS), True)
-        self._runs, self._spare = runs, self._runs
+        # the runs replaced are kept for the next rebuild if they would hold it, its slots
+        # foreseen as the new runs' plus what they grew by: an index that keeps growing (a robot
+        # exploring) writes fresh memory each time and keeps no spare
+        was, now = self._runs["r_ids"].shape[0], runs["r_ids"].shape[0]
+        fits = mod.held(self._runs["r_ids"]).shape[0] >= now + max(now - was, 0)
+        self._runs, self._spare = runs, self._runs if fits else None
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._indexed, self._overflow, self._dead_linked = self._live, 0, 0
         self._unlinked = []
