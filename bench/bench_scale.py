@@ -40,6 +40,7 @@ import resource
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -274,6 +275,68 @@ def instrument(db: Any) -> list[list[Any]]:
     return parts
 
 
+def thread_cpu_ms() -> dict[str, float]:
+    """CPU time (ms) of every thread of this process by name, from /proc (empty elsewhere)."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    with contextlib.suppress(OSError):
+        for tid in os.listdir("/proc/self/task"):
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                ns = int(Path(f"/proc/self/task/{tid}/schedstat").read_text().split()[0])
+                name = names.get(int(tid), f"thread {tid}")
+                out[name] = out.get(name, 0.0) + ns / 1e6
+    return out
+
+
+class AddProbe:
+    """What one add cost and what ran beside it: wall and CPU time of the adding thread, full
+    garbage collections (any thread) that overlapped it, the parts :func:`instrument` timed
+    inside it, the adding thread's page faults and the CPU that other threads of the process
+    used meanwhile (a lock or the interpreter lock they held is time the add waited)."""
+
+    def __init__(self, db: Any, adds_done: Any) -> None:
+        self.parts = instrument(db)
+        self.full_gc: list[list[float]] = []  # [start, end, adds done before it]
+        self._adds_done = adds_done
+        gc.callbacks.append(self._on_gc)
+        self._t = self._c = self._dt = self._cpu = 0.0
+        self._faults = 0
+        self._threads: dict[str, float] = {}
+
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        if info["generation"] == 2:
+            if phase == "start":
+                self.full_gc.append([time.perf_counter(), float("nan"), self._adds_done()])
+            elif self.full_gc:
+                self.full_gc[-1][1] = time.perf_counter()
+
+    def before(self) -> None:
+        self.parts.clear()
+        self._threads = thread_cpu_ms()
+        self._faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+        self._c = time.thread_time()
+        self._t = time.perf_counter()
+
+    def after(self) -> float:
+        """Seconds the add took."""
+        self._dt = time.perf_counter() - self._t
+        self._cpu = time.thread_time() - self._c
+        return self._dt
+
+    def record(self) -> list[Any]:
+        """[wall ms, CPU ms, full-collection ms, parts] of the add just timed (call it right
+        after :meth:`after`, only for the adds worth recording)."""
+        t, dt = self._t, self._dt
+        in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b, _ in self.full_gc[-3:])
+        faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - self._faults
+        now = thread_cpu_ms()
+        me = threading.current_thread().name
+        others = {k: round(v - self._threads.get(k, 0.0), 2) for k, v in now.items()
+                  if k != me and v - self._threads.get(k, 0.0) >= 0.05}
+        return [round(1e3 * dt, 2), round(1e3 * self._cpu, 2), round(1e3 * in_gc, 2),
+                [*self.parts, ["page faults", faults], ["other threads' CPU ms", others]]]
+
+
 def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, descriptors: bool,
                 budget_s: float, seed: int) -> None:
     """Add entries to the map until it holds n_total or the time budget is spent."""
@@ -291,40 +354,22 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
     kept = list(np.load(kept_path)) if kept_path.exists() else []
     times = []
     # [entry, wall ms, CPU ms of the adding thread, ms of full garbage collections (any thread)
-    # inside it, what ran inside it and the adding thread's page faults] of every add over 10 ms
+    # inside it, what ran inside it] of every add over 10 ms (AddProbe)
     slow = []
-    # [start, end, adds done before it] of every collection of the oldest generation
-    full_gc: list[list[float]] = []
     i = start
-
-    def on_gc(phase: str, info: dict[str, int]) -> None:
-        if info["generation"] == 2:
-            if phase == "start":
-                full_gc.append([time.perf_counter(), float("nan"), i - start])
-            elif full_gc:
-                full_gc[-1][1] = time.perf_counter()
-
-    gc.callbacks.append(on_gc)
-    parts = instrument(db)
+    probe = AddProbe(db, lambda: i - start)
     load0 = load()
     deadline = time.perf_counter() + budget_s
     while i < n_total and time.perf_counter() < deadline:
         d = maker.next()
         bow, fvec = voc.transform(d)
         feats = fake_features(d, rng)  # the direct index is stored; these only when descriptors
-        parts.clear()
-        faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
-        c = time.thread_time()
-        t = time.perf_counter()
+        probe.before()
         db.add(bow, fvec, feats, timestamp=float(i))
-        dt = time.perf_counter() - t
+        dt = probe.after()
         times.append(dt)
         if dt > 0.010:
-            in_gc = sum(max(min(b, t + dt) - max(a, t), 0.0) for a, b, _ in full_gc[-3:])
-            cpu = time.thread_time() - c
-            faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - faults
-            slow.append([i, round(1e3 * dt, 2), round(1e3 * cpu, 2), round(1e3 * in_gc, 2),
-                         [*parts, ["page faults", faults]]])
+            slow.append([i, *probe.record()])
         if i % max(n_total // 200, 1) == 0:
             kept.append(d)
         i += 1
@@ -338,7 +383,7 @@ def build_child(voc_path: str, db_path: str, n_total: int, n_features: int, desc
                       "add_ms": stats_ms(times) if times else {}, "slow_adds": slow,
                       # [ms, adds done before it]: numba's import (the first transform) runs
                       # a few before the first add
-                      "full_gc_ms": [[round(1e3 * (b - a), 2), int(k)] for a, b, k in full_gc],
+                      "full_gc_ms": [[round(1e3 * (b - a), 2), int(k)] for a, b, k in probe.full_gc],
                       "open_s": round(open_s, 3),
                       "close_s": round(close_s, 3), "load": [load0, load()], **memory_gb()}))
 
@@ -398,10 +443,11 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
     maker = EntryMaker(voc, n_features=n_features, seed=10**7 + start)
     rng = np.random.default_rng(start)
     times = []
-    # [add, wall ms, CPU ms of the adding thread, what ran inside it and the adding thread's page
-    # faults] of every add over 10 ms
+    # [add, wall ms, CPU ms of the adding thread, ms of full garbage collections, what ran
+    # inside it] of every add over 10 ms (AddProbe)
     slow = []
-    parts = instrument(db)
+    i = 0
+    probe = AddProbe(db, lambda: i)
     load0 = load()
     next_at = time.perf_counter()
     for i in range(n):
@@ -410,17 +456,12 @@ def paced_child(voc_path: str, db_path: str, n_features: int, descriptors: bool,
         feats = fake_features(d, rng)
         next_at += 1.0 / hz
         time.sleep(max(next_at - time.perf_counter(), 0.0))
-        parts.clear()
-        faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
-        c = time.thread_time()
-        t = time.perf_counter()
+        probe.before()
         db.add(bow, fvec, feats, timestamp=float(start + i))
-        dt = time.perf_counter() - t
+        dt = probe.after()
         times.append(dt)
         if dt > 0.010:
-            faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - faults
-            slow.append([i, round(1e3 * dt, 2), round(1e3 * (time.thread_time() - c), 2),
-                         [*parts, ["page faults", faults]]])
+            slow.append([i, *probe.record()])
     db.close()
     print(json.dumps({"entries_before": start, "adds": n, "hz": hz, "add_ms": stats_ms(times),
                       "slow_adds": slow, "load": [load0, load()]}))

@@ -362,3 +362,55 @@ def test_the_log_stays_short_when_adds_come_back_to_back(voc: Vocabulary, tmp_pa
     assert 0 < largest < 8 * 2**20
     with Database(voc, path, readonly=True) as db:
         assert len(db) == 1500 and db.entry(1499).features.descriptors.shape == (1000, 32)
+
+
+# A SLAM loop on a file map: query, then add, frame after frame. After the first frame nothing
+# may be imported: a module's first import inside an add stalls it (NumPy's ``np.unique``
+# imported ``numpy.ma`` at the first merge of a reopened map: 8 ms of one add, bench_scale.py).
+LOOP_IMPORTS = textwrap.dedent(
+    """
+    import sys, numpy as np
+    sys.path.insert(0, {tests!r})
+    from dbkit import fake_features, make_images
+    from stablecues.database import Database, DatabaseConfig
+    from stablecues.vocabulary import load_vocabulary
+    if {incremental}:
+        from stablecues.types import DescriptorKind
+        from stablecues.vocabulary.incremental import IncrementalVocabulary
+        voc = IncrementalVocabulary(DescriptorKind("binary", 32), save_every=7, purge_after=5)
+        to_bow = voc.learn
+    else:
+        voc = load_vocabulary({voc!r}, levels_up=2)
+        to_bow = voc.transform
+    images = make_images(240, seed=1)
+    db = Database(voc, {db!r}, DatabaseConfig(tail_postings=400, merge_chunk=300))
+    def frame(k):
+        bow, fvec = to_bow(images[k])
+        db.query(bow, max_results=5, exclude_recent=3)
+        db.add(bow, fvec, fake_features(images[k]))
+    frame(0)
+    before = set(sys.modules)
+    for k in range(1, len(images)):
+        frame(k)
+    segments = len(db.index._segments)
+    db.close()
+    print(segments, *sorted(set(sys.modules) - before))
+    """
+)
+
+
+@pytest.mark.parametrize("incremental", [False, True], ids=["trained", "incremental"])
+def test_a_slam_loop_on_a_file_map_imports_nothing_after_its_first_frame(
+    voc: Vocabulary, tmp_path: Path, incremental: bool
+) -> None:
+    voc_path = tmp_path / "v.scv"
+    save_vocabulary(voc, voc_path)
+    script = LOOP_IMPORTS.format(tests=str(Path(__file__).parents[1]), voc=str(voc_path),
+                                 db=str(tmp_path / "db.sqlite"), incremental=incremental)
+    # the NumPy engine: the compiled one imports numba in a thread of its own, beside the adds
+    env = dict(os.environ, STABLECUES_ENGINE="numpy")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    segments, *imported = out.stdout.split()
+    assert int(segments) >= 2  # the index sorted, persisted and merged segments meanwhile
+    assert imported == []

@@ -47,6 +47,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import DTypeLike
 
+from .._arrays import distinct
 from ..engine import requested
 from ..errors import DatabaseError
 from ..vocabulary.engine import compiled_kernels, loaded_kernels, resolve
@@ -977,7 +978,8 @@ class MergeJob:
             return [0, self.n_words]
         big = max(self.inputs, key=lambda s: s.size)
         pos = (np.arange(1, n_chunks) * big.size) // n_chunks
-        inner = np.unique((word_at or big.word_at)(pos.astype(np.int64)))
+        # the words at ascending offsets of a segment sorted by word ascend too
+        inner = distinct((word_at or big.word_at)(pos.astype(np.int64)), is_sorted=True)
         inner = inner[(inner > 0) & (inner < self.n_words)]
         return [0, *inner.tolist(), self.n_words]
 

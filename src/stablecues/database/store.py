@@ -51,6 +51,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+from .._arrays import distinct
 from ..errors import ConfigError, DatabaseError, InputError, VocabularyError, check_array
 from ..types import BowVector, Entry, Features, FeatureVector, QueryResult
 from ..vocabulary import Vocabulary, higher_is_better
@@ -848,7 +849,7 @@ class Database:
         clauses: list[str] = []
         args: list[Any] = []
         if ids is not None:
-            arr = np.unique(np.asarray(list(ids), np.int64))
+            arr = distinct(np.asarray(list(ids), np.int64))
             arr = arr[(arr >= 0) & (arr < len(self))]
             clauses.append("id IN (SELECT value FROM json_each(?))")
             args.append(json.dumps(arr.tolist()))

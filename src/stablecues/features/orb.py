@@ -26,6 +26,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from .._arrays import distinct
 from ..engine import Kernels, requested
 from ..errors import ConfigError
 from ..imageio import to_grey
@@ -145,7 +146,7 @@ def distribute_quadtree(
         cx = np.floor(points[:, 0] / cell).astype(np.int64)
         cy = np.floor(points[:, 1] / cell).astype(np.int64)
         cells = cy * (1 << depth) + cx
-        n_cells = np.unique(cells).size
+        n_cells = distinct(cells).size
         # Stop when there are enough cells, or cells are below a pixel (duplicates remain).
         if n_cells >= quota or cell < 1.0:
             break

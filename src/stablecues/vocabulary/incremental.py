@@ -55,6 +55,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._arrays import distinct
 from ..errors import ConfigError, InputError, VocabularyError
 from ..types import BowVector, DescriptorKind, FeatureVector
 from ..vocabulary.scoring import Scoring, Weighting, normalise
@@ -495,7 +496,7 @@ class IncrementalVocabulary:
             self._version += 1  # keys made before are stale
         words = self._grow_words(descriptors)
         self._version += 1
-        seen = np.unique(words[words >= 0])
+        seen = distinct(words[words >= 0])
         self._df[seen] += 1
         self._last[seen] = self._images
         self._images += 1
