@@ -140,3 +140,35 @@ def test_sequence_settings_are_checked() -> None:
     for bad in ({"sequence": -1}, {"sequence_tolerance": -1}):
         with pytest.raises(ConfigError, match="sequence"):
             preset("fast", {"query": bad})
+
+
+@pytest.mark.parametrize("choice", [False, True])
+def test_sequence_choice_takes_the_island_on_the_line_over_one_with_more_inliers(choice: bool) -> None:
+    """Entry 9 is the query's own view (the most inliers), entry 3 the place 5 px off; the
+    recent queries drew a line through 3 only. Ranked by inliers the loop is 9, by inliers
+    times the sequence score it is 3; the islands cut short by ``must_beat`` stay consistent."""
+    from stablecues.detection.decision import Island
+    from stablecues.detection.detector import _Query
+
+    pano = _wall(11)
+    xs = [STEP * i for i in range(9)] + [5 + STEP * 3]
+    cfg = preset("fast", {"query": {"sequence": 4, "sequence_choice": choice, "refine": 0, "viewpoint_steps": 0},
+                          "confidence": "sequence", "similarity": False})
+    det = LoopDetector(cfg)
+    for i, x in enumerate(xs):
+        det.store(Frame(index=i, name=f"{i}.png", timestamp=float(i), image=np.ascontiguousarray(pano[:, x:x + 320])))
+    query = Frame(index=20, name="20.png", timestamp=20.0, image=np.ascontiguousarray(pano[:, xs[9]:xs[9] + 320]))
+    prep = det.preparer.prepare(query, None)
+    found = _Query(islands=[Island(9, 9, 9, 1.0, 1.0), Island(3, 3, 3, 0.9, 0.9)], candidate=9)
+    found.window = [_results({9: 1.0, 3: 1.0}), _results({2: 1.0}), _results({1: 1.0}), _results({0: 1.0})]
+    status, result, checked = det._verify(prep, found)
+    assert status is Status.LOOP_DETECTED and result is not None
+    inliers = {c.frame: c.verification.n_inliers for c in checked}
+    assert inliers[9] > 0
+    if choice:
+        assert found.candidate == 3 and result.n_inliers == inliers[3]
+        assert inliers[3] * 1.0 > inliers[9] * 0.25  # entry 9's line holds the current query alone
+    else:
+        assert found.candidate == 9 and inliers[9] > inliers.get(3, 0)
+    with pytest.raises(ConfigError, match="sequence_choice"):
+        preset("fast", {"query": {"sequence_choice": True}})

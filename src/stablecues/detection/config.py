@@ -75,6 +75,11 @@ class QueryConfig:
             that ranking), SeqSLAM's own use of it. Off in every preset: measured before the
             scores were capped, alone it moved the night pairings less than the sequence
             confidence does (docs/learned.md), and with the capped scores it is not measured.
+        sequence_choice: among the verified islands, the loop is the one whose inliers times
+            sequence score is highest (the confidence ``"sequence"`` ranks loops by), not the one
+            with the most inliers: by night a wrong place fits a fundamental matrix to 30-50
+            chance matches as often as the right one does, and the frames before seldom draw
+            a line through it. Needs ``sequence`` >= 2.
         sequence_tolerance: each step of the line may land this many entries either side.
         vlad: weight of the second retrieval vote, VLAD (:mod:`stablecues.vocabulary.vlad`):
             each entry keeps the VLAD vector of its float descriptors, and a candidate's score is
@@ -109,6 +114,7 @@ class QueryConfig:
     viewpoint_inliers: float = 0.75
     sequence: int = 0
     sequence_rank: bool = False
+    sequence_choice: bool = False
     sequence_tolerance: int = 1
     vlad: float = 0.0
     vlad_codebook: str = "default"
@@ -116,6 +122,9 @@ class QueryConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.vlad <= 1.0:
             raise ConfigError(f"query.vlad (the VLAD vote's weight) must be in [0, 1], got {self.vlad}")
+        if self.sequence_choice and self.sequence < 2:
+            raise ConfigError(f"query.sequence_choice ranks islands by their sequence score: it needs "
+                              f"query.sequence >= 2, got {self.sequence}")
         if self.sequence < 0 or self.sequence_tolerance < 0:
             raise ConfigError(f"sequence >= 0 and sequence_tolerance >= 0 are required, got "
                               f"{self.sequence} and {self.sequence_tolerance}")

@@ -47,6 +47,8 @@ from .sequence import Scored, SequenceHistory, sequence_scores
 from .vladvote import VladVote
 
 log = logging.getLogger(__name__)
+#: ``must_beat`` for a candidate that cannot win whatever it matches (its rank weight is 0)
+_NEVER = 1 << 30
 
 
 def compute_islands(ids: np.ndarray, scores: np.ndarray, gap: int) -> list[Island]:
@@ -530,18 +532,27 @@ class LoopDetector:
         geometric inliers is the loop (``found`` is updated to name it)."""
         if self.config.verification is None:
             return Status.LOOP_DETECTED, None, ()
+        q = self.config.query
         verifier = self.preparer.verifier(prep.calibration)
         checked = []
-        most = 0  # inliers of the best loop accepted so far: a candidate with fewer matches cannot win
-        for island in found.islands[: self.config.query.islands_verified]:
+        islands = found.islands[: q.islands_verified]
+        # what each island's inliers are multiplied by to rank it: 1, or its sequence score
+        weight = np.ones(len(islands))
+        if q.sequence_choice and found.window:
+            weight = sequence_scores(np.array([i.best for i in islands], np.int64), found.window,
+                                     tolerance=q.sequence_tolerance)
+        top = 0.0  # the best accepted island's rank: a candidate whose matches cannot beat it is cut short
+        for island, w in zip(islands, weight, strict=True):
+            most = 0 if top <= 0 else (math.floor(top / w) if w > 0 else _NEVER)
             result = verifier.verify(prep.view, self._candidate(verifier, island.best), must_beat=most)
             checked.append(Checked(island, self._entry_frames[island.best], result))
             if result.accepted:
-                most = max(most, result.n_inliers)
-        accepted = [c for c in checked if c.verification.accepted]
+                top = max(top, result.n_inliers * float(w))
+        accepted = [(c, w) for c, w in zip(checked, weight, strict=True) if c.verification.accepted]
         if not accepted:
             return Status.NO_GEOMETRICAL_CONSISTENCY, checked[0].verification, tuple(checked)
-        best = max(accepted, key=lambda c: (c.verification.n_inliers, c.island.best_score))
+        best = max(accepted, key=lambda cw: (cw[0].verification.n_inliers * float(cw[1]),
+                                             cw[0].verification.n_inliers, cw[0].island.best_score))[0]
         entry, result = best.island.best, best.verification
         for e, r in self._refine(prep, verifier, best.island, checked, result.n_inliers):
             if r.accepted and r.n_inliers > result.n_inliers:
