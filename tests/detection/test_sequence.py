@@ -152,12 +152,16 @@ def test_sequence_choice_takes_the_island_on_the_line_over_one_with_more_inliers
 
     pano = _wall(11)
     xs = [STEP * i for i in range(9)] + [5 + STEP * 3]
-    cfg = preset("fast", {"query": {"sequence": 4, "sequence_choice": choice, "refine": 0, "viewpoint_steps": 0},
-                          "confidence": "sequence", "similarity": False})
-    det = LoopDetector(cfg)
+    query_cfg = {"sequence": 4, "sequence_choice": choice, "refine": 0, "viewpoint_steps": 0}
+    det = LoopDetector(preset("fast", {"query": query_cfg, "confidence": "sequence", "similarity": False}))
+
+    def view(i: int, x: int) -> Frame:
+        image = np.ascontiguousarray(pano[:, x:x + 320])
+        return Frame(index=i, name=f"{i}.png", timestamp=float(i), image=image)
+
     for i, x in enumerate(xs):
-        det.store(Frame(index=i, name=f"{i}.png", timestamp=float(i), image=np.ascontiguousarray(pano[:, x:x + 320])))
-    query = Frame(index=20, name="20.png", timestamp=20.0, image=np.ascontiguousarray(pano[:, xs[9]:xs[9] + 320]))
+        det.store(view(i, x))
+    query = view(20, xs[9])
     prep = det.preparer.prepare(query, None)
     found = _Query(islands=[Island(9, 9, 9, 1.0, 1.0), Island(3, 3, 3, 0.9, 0.9)], candidate=9)
     found.window = [_results({9: 1.0, 3: 1.0}), _results({2: 1.0}), _results({1: 1.0}), _results({0: 1.0})]
