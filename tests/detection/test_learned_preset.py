@@ -17,10 +17,12 @@ def test_learned_preset_settings() -> None:
     cfg = preset("learned")
     assert cfg.features.name == "xfeat" and cfg.verification is not None
     assert cfg.verification.matcher == "mnn"
-    # every mutual match verified, loops ranked by inliers x the 8-frame sequence score, under 20 refused
+    # every mutual match verified; of the 7 best islands the loop is the one with the most inliers x
+    # its 10-frame sequence score, loops ranked by that product, under 20 refused
     v = cfg.verification
     assert (v.ratio, v.max_distance, v.min_fundamental_ratio) == (1.0, 256, 0.0)
-    assert cfg.query.sequence == 8 and not cfg.query.sequence_rank and cfg.confidence == "sequence"
+    assert cfg.query.sequence == 10 and not cfg.query.sequence_rank and cfg.confidence == "sequence"
+    assert cfg.query.sequence_choice and cfg.query.islands_verified == 7
     assert cfg.min_confidence == 20.0
     assert cfg.query.vlad == 0.35 and cfg.query.vlad_codebook == "default"  # the VLAD vote
     assert "XFeat" in describe_preset("learned")
