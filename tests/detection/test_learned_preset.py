@@ -22,7 +22,7 @@ def test_learned_preset_settings() -> None:
     v = cfg.verification
     assert (v.ratio, v.max_distance, v.min_fundamental_ratio) == (1.0, 256, 0.0)
     assert cfg.query.sequence == 10 and not cfg.query.sequence_rank and cfg.confidence == "sequence"
-    assert cfg.query.sequence_choice and cfg.query.islands_verified == 7
+    assert cfg.query.sequence_choice and cfg.query.islands_verified == 7 and cfg.query.refine == 2
     assert cfg.min_confidence == 20.0
     assert cfg.query.vlad == 0.35 and cfg.query.vlad_codebook == "default"  # the VLAD vote
     assert "XFeat" in describe_preset("learned")
