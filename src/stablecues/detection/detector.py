@@ -529,7 +529,8 @@ class LoopDetector:
         self, prep: PreparedFrame, found: _Query
     ) -> tuple[Status, Verification | None, tuple[Checked, ...]]:
         """Step 5: verify the best ``islands_verified`` islands; the accepted one with the most
-        geometric inliers is the loop (``found`` is updated to name it)."""
+        geometric inliers (``query.sequence_choice``: the most inliers times sequence score) is
+        the loop (``found`` is updated to name it)."""
         if self.config.verification is None:
             return Status.LOOP_DETECTED, None, ()
         q = self.config.query
