@@ -215,7 +215,7 @@ class IncrementalVocabulary:
         mod = _kernel_module()
         self._pool = mod.pool(self.tables, self.bits, 1024, 4096, width, self._dtype)
         self._runs = mod.runs(self.tables, self.bits, np.zeros(self.tables << self.bits), width, self._dtype)
-        # the runs before the last rebuild: the next rebuild writes into them
+        # the runs before the last rebuild: the next rebuild writes into them where it fits
         self._spare: dict[str, np.ndarray] | None = None
         self._indexed = 0  # live words when the runs were made
         self._overflow = 0  # slots in overflow pages since
