@@ -89,8 +89,7 @@ _PRESETS: dict[str, tuple[str | None, str | None, dict[str, Any], str]] = {
                                   "verification": _LEARNED_STREAM},
                 "pretrained XFeat features (ONNX) with their own vocabulary and a VLAD vote, matched by "
                 "mutual nearest neighbours, loops chosen and ranked by inliers times their 10-frame "
-                "sequence score; "
-                "for changing light (day/night)"),
+                "sequence score; for changing light (day/night)"),
     "learned-glue": (None, "learned",
                      {"query": {**_MEASURED_QUERY, "islands_verified": 2, "refine": 0, "viewpoint_steps": 0},
                       "features": {"name": "xfeat"}, "verification": {"matcher": "lighterglue"}},
