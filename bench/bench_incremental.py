@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_learned import GARDENS, PAIRINGS, PLACES, WINDOWS, gardens_sequence, merge
+from bench_learned import GARDENS, PAIRINGS, PLACES, WINDOWS, gardens_dataset, merge
 from bench_loops import REVISITS, SHARED, bench_desk, bench_euroc, needs_segmentation, network_available
 from stablecues.database import Database, DatabaseConfig
 from stablecues.datasets import open_dataset
@@ -91,8 +91,7 @@ def load_sets() -> dict[str, tuple[Any, dict[str, GroundTruth]]]:
     work = Path(tempfile.mkdtemp(prefix="bench_incremental_"))
     truth = {w: load_ground_truth(GARDENS / f) for w, f in WINDOWS.items()}
     for pairing, (ref, qry) in PAIRINGS.items():
-        folder = gardens_sequence(ref, qry, work / f"gardens_{ref}_{qry}")
-        out[pairing] = (open_dataset(folder, format="folder"), truth)
+        out[pairing] = (gardens_dataset(ref, qry, work / f"gardens_{ref}_{qry}"), truth)
     dev = SHARED / "camvid_revisit_dev"
     for name in REVISITS:
         out[name] = (open_dataset(dev / name / "frames", format="folder"),

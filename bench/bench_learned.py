@@ -180,6 +180,16 @@ def gardens_sequence(reference: str, query: str, dst: Path) -> Path:
     return dst
 
 
+def gardens_dataset(reference: str, query: str, dst: Path) -> Any:
+    """The pairing as one sequence (:func:`gardens_sequence`), the query traversal's frames
+    session 1 (``Frame.session``: two walks recorded apart, as the VPR-Bench reader marks its
+    passes)."""
+    ds = open_dataset(gardens_sequence(reference, query, dst), format="folder")
+    for rec in ds.records[PLACES:]:
+        rec.session = 1
+    return ds
+
+
 def query_frames(gt: GroundTruth) -> np.ndarray:
     """The frames that are queries with a true loop (two-pass sets: of the query pass)."""
     rows = gt.matrix.any(axis=1)
@@ -338,8 +348,7 @@ def bench_gardens(configs: Configs, work: Path, network: bool, quick: int | None
     truth = {w: load_ground_truth(GARDENS / f) for w, f in WINDOWS.items()}
     out: dict[str, Any] = {}
     for pairing, (ref, qry) in PAIRINGS.items():
-        folder = gardens_sequence(ref, qry, work / f"gardens_{ref}_{qry}")
-        ds, gts = limit(open_dataset(folder, format="folder"), truth, quick)
+        ds, gts = limit(gardens_dataset(ref, qry, work / f"gardens_{ref}_{qry}"), truth, quick)
         res: dict[str, Any] = {"frames": len(ds), "quick_query_places": quick,
                                "reference": f"{ref} (frames 0-{PLACES - 1})",
                                "query": f"{qry} (frames {PLACES}-{len(ds) - 1})",
@@ -652,8 +661,7 @@ def bench_storage(configs: Configs, work: Path, network: bool, quick: int | None
     day_right -> night_right with either storage."""
     ref, qry = PAIRINGS[STORAGE_PAIRING]
     truth = {w: load_ground_truth(GARDENS / f) for w, f in WINDOWS.items()}
-    folder = gardens_sequence(ref, qry, work / f"storage_{ref}_{qry}")
-    ds, gts = limit(open_dataset(folder, format="folder"), truth, quick)
+    ds, gts = limit(gardens_dataset(ref, qry, work / f"storage_{ref}_{qry}"), truth, quick)
     out: dict[str, Any] = {
         "load_before": list(os.getloadavg()), "preset": "learned", "pairing": STORAGE_PAIRING,
         "frames": len(ds), "quick_query_places": quick,

@@ -12,7 +12,10 @@ night) and ``--preset learned`` (XFeat) can be compared.
 
 With ``--map FILE`` the map is kept in a file: run it once on the day folder alone
 (``--revisit`` left out) and later on the night folder with the same ``--map``; the detector
-reopens the map and continues, numbering frames after the ones already there.
+reopens the map and continues, numbering frames after the ones already there. Each traversal is
+a session of its own (``Frame.session``; the next one a reopened map gives from
+``LoopDetector.next_session``): a loop to the other traversal is taken before a view of the one
+under way.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     traversals = [list_images(f, f"images of {f}")[: args.places] for f in folders]
     detector = LoopDetector(preset(args.preset), database=str(args.map) if args.map else None)
     start = detector.next_index  # a reopened map: this run numbers on from where it stopped
+    session = detector.next_session  # each traversal is a session: loops to another one come first
     first_of = {}  # frame index -> (traversal, place)
     loops, t0 = 0, time.perf_counter()
     index = start
@@ -54,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         for place, path in enumerate(images):
             first_of[index] = (t, place)
             d = detector.process(Frame(index=index, name=path.name, timestamp=math.nan,
-                                       image=read_image(path, "bgr")))
+                                       image=read_image(path, "bgr"), session=session + t))
             if d.accepted and d.verification is not None:
                 loops += 1
                 where = first_of.get(d.candidate_frame)

@@ -30,6 +30,7 @@ def test_vprbench(tmp_path: Path) -> None:
     assert ds.format == "vprbench" and len(ds) == 5
     assert ds.names == [f"ref/{k:07d}.jpg" for k in range(3)] + [f"query/{k:07d}.jpg" for k in range(2)]
     assert ds[3].image[0, 0] == 100
+    assert [ds[k].session for k in range(5)] == [0, 0, 0, 1, 1]  # two passes, two sessions
     gt = ds.ground_truth()
     assert gt is not None and gt.query_mask is not None
     assert list(zip(*np.nonzero(gt.matrix), strict=True)) == [(3, 0), (3, 1)]

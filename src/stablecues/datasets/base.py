@@ -78,6 +78,7 @@ class FrameRecord:
     labels: Path | None = None
     pose: np.ndarray | None = None
     name: str | None = None
+    session: int = 0
 
 
 @dataclass
@@ -156,6 +157,7 @@ class SequenceDataset:
             pose=None if rec.pose is None else rec.pose.copy(),
             calibration=self.calibration,
             calibration_path=self.calibration_path,
+            session=rec.session,
         )
 
     @property

@@ -8,9 +8,11 @@ Layout::
                                read by a restricted unpickler: arrays, lists, ints only)
 
 The sequence is every reference image, then every query: frame ``k < R`` is ``ref`` image ``k``
-and frame ``R + i`` is query ``i``. The loop ground truth maps onto these combined indices and
-marks only the query frames as queries (:class:`~stablecues.groundtruth.GroundTruth`
-``query_mask``), so detections made during the reference pass are not scored.
+and frame ``R + i`` is query ``i``; the reference frames are session 0 and the queries session 1
+(:attr:`~stablecues.types.Frame.session`: two traversals recorded apart). The loop ground truth
+maps onto these combined indices and marks only the query frames as queries
+(:class:`~stablecues.groundtruth.GroundTruth` ``query_mask``), so detections made during the
+reference pass are not scored.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def open_vprbench(path: str | Path, *, grey: bool = False) -> SequenceDataset:
     refs = list_images(root / "ref", "reference images")
     queries = list_images(root / "query", "query images")
     records = [FrameRecord(image=p, name=f"ref/{p.name}") for p in refs]
-    records += [FrameRecord(image=p, name=f"query/{p.name}") for p in queries]
+    records += [FrameRecord(image=p, name=f"query/{p.name}", session=1) for p in queries]
     gt = root / GT_NAME
     return SequenceDataset(
         root=root,

@@ -81,6 +81,14 @@ class QueryConfig:
             chance matches as often as the right one does, and the frames before seldom draw
             a line through it. Needs ``sequence`` >= 2.
         sequence_tolerance: each step of the line may land this many entries either side.
+        other_sessions_first: when frames carry sessions (:attr:`~stablecues.types.Frame.session`),
+            the islands of another session than the query's are verified first, and one of them
+            accepted is the loop: the islands of the session under way are then not verified.
+            A view from the walk under way shares its light and its side of the path with the
+            query and fits more matches than the place itself seen in another pass, so a
+            repeated part of the same walk (a second locker bank down a corridor) outscores the
+            true place; across sessions the comparison is even (docs/learned.md). No effect on
+            a single stream (every frame session 0).
         vlad: weight of the second retrieval vote, VLAD (:mod:`stablecues.vocabulary.vlad`):
             each entry keeps the VLAD vector of its float descriptors, and a candidate's score is
             ``(1 - vlad) * BoW score + vlad * VLAD score``, both normalised by the previous
@@ -116,6 +124,7 @@ class QueryConfig:
     sequence_rank: bool = False
     sequence_choice: bool = False
     sequence_tolerance: int = 1
+    other_sessions_first: bool = True
     vlad: float = 0.0
     vlad_codebook: str = "default"
 

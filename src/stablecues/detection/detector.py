@@ -294,6 +294,9 @@ class LoopDetector:
         metas = [m if isinstance(m, dict) else {} for m in (self.db.column("meta") if n else [])]
         present = self.db.ids() if n else np.zeros(0, np.int64)
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
+        # each entry's Frame.session (0 when not stored: a single stream, or an older map)
+        self._sessions: list[int] = [v if isinstance(v := m.get("session", 0), int)
+                                     and not isinstance(v, bool) and v >= 0 else 0 for m in metas]
         self._index_said = False
         self._processed = self._close_only = 0  # frames processed, and those with no older entry
         latest = int(present[-1]) if present.size else -1  # the newest entry still in the map
@@ -371,6 +374,12 @@ class LoopDetector:
         numbers on where the first stopped."""
         return self._entry_frames[-1] + 1 if self._entry_frames else 0
 
+    @property
+    def next_session(self) -> int:
+        """The :attr:`~stablecues.types.Frame.session` a new recording added to this map should
+        give its frames: one past the latest stored entry's (0 for an empty map)."""
+        return self._sessions[-1] + 1 if self._sessions else 0
+
     def __enter__(self) -> LoopDetector:
         return self
 
@@ -381,16 +390,18 @@ class LoopDetector:
         return len(self.db)
 
     # ------------------------------------------------------------------ helpers
-    def _continuity_of(self, bow: BowVector) -> tuple[float, int]:
+    def _continuity_of(self, bow: BowVector, session: int) -> tuple[float, int]:
         """(the frame's score with the previous entry, the first entry of the run the frame
         belongs to): a new run, starting at the frame itself, when that score falls below
         ``run_break`` times the median of the latest adjacent scores (and below
-        ``run_break_score``)."""
+        ``run_break_score``), or when the frame starts another session than the latest entry's."""
         q = self.config.query
         n = len(self.db)
         if self._prev_bow is None:
             return math.nan, n
         adjacent = score(bow, self._prev_bow, self.vocabulary.scoring)
+        if self._sessions and session != self._sessions[-1]:
+            return adjacent, n
         recent = self._adjacent[-q.run_history:]
         if (q.run_break is not None and len(recent) >= 2 and adjacent < q.run_break * float(np.median(recent))
                 and (q.run_break_score is None or adjacent < q.run_break_score)):
@@ -453,7 +464,7 @@ class LoopDetector:
         vlad = self._vlad_of(prep)
         timings, t = prep.timings, time.perf_counter()
         entry = len(self.db)
-        self._continuity = self._continuity_of(prep.bow)
+        self._continuity = self._continuity_of(prep.bow, frame.session)
         found = self._query(prep.bow, frame, entry, vlad)
         self._sequence.push(found.current)
         timings["query"] = (time.perf_counter() - t) * 1e3
@@ -464,7 +475,7 @@ class LoopDetector:
         checked: tuple[Checked, ...] = ()
         if status is None:
             t = time.perf_counter()
-            status, verification, checked = self._verify(prep, found)
+            status, verification, checked = self._verify(prep, found, frame.session)
             timings["verify"] = (time.perf_counter() - t) * 1e3
         if store:
             self._store(frame, prep, limit=found.limit, vlad=vlad)
@@ -501,7 +512,7 @@ class LoopDetector:
         prep = self.preparer.prepare(frame, features)
         vlad = self._vlad_of(prep)
         entry = len(self.db)
-        self._continuity = self._continuity_of(prep.bow)
+        self._continuity = self._continuity_of(prep.bow, frame.session)
         self._sequence.start(self._continuity[1])
         self._sequence.push(Scored.empty())  # no query: a gap in the sequence, frames stay aligned
         self._store(frame, prep, vlad=vlad)
@@ -526,11 +537,12 @@ class LoopDetector:
         return out
 
     def _verify(
-        self, prep: PreparedFrame, found: _Query
+        self, prep: PreparedFrame, found: _Query, session: int = 0
     ) -> tuple[Status, Verification | None, tuple[Checked, ...]]:
         """Step 5: verify the best ``islands_verified`` islands; the accepted one with the most
         geometric inliers (``query.sequence_choice``: the most inliers times sequence score) is
-        the loop (``found`` is updated to name it)."""
+        the loop (``found`` is updated to name it); with ``query.other_sessions_first`` one of
+        another session than ``session`` (the query's) before any of that session."""
         if self.config.verification is None:
             return Status.LOOP_DETECTED, None, ()
         q = self.config.query
@@ -542,18 +554,25 @@ class LoopDetector:
         if q.sequence_choice and found.window:
             weight = sequence_scores(np.array([i.best for i in islands], np.int64), found.window,
                                      tolerance=q.sequence_tolerance)
+        # query.other_sessions_first: the islands of other sessions first, one of them accepted
+        # is the loop and the islands of the session under way are not verified
+        other = [q.other_sessions_first and self._sessions[i.best] != session for i in islands]
+        accepted: list[tuple[Checked, float, bool]] = []  # (what was checked, weight, other session)
         top = 0.0  # the best accepted island's rank: a candidate whose matches cannot beat it is cut short
-        for island, w in zip(islands, weight, strict=True):
+        for k in sorted(range(len(islands)), key=lambda k: not other[k]):
+            island, w = islands[k], float(weight[k])
+            if accepted and accepted[0][2] and not other[k]:
+                break
             most = 0 if top <= 0 else (math.floor(top / w) if w > 0 else _NEVER)
             result = verifier.verify(prep.view, self._candidate(verifier, island.best), must_beat=most)
             checked.append(Checked(island, self._entry_frames[island.best], result))
             if result.accepted:
-                top = max(top, result.n_inliers * float(w))
-        accepted = [(c, w) for c, w in zip(checked, weight, strict=True) if c.verification.accepted]
+                accepted.append((checked[-1], w, other[k]))
+                top = max(top, result.n_inliers * w)
         if not accepted:
             return Status.NO_GEOMETRICAL_CONSISTENCY, checked[0].verification, tuple(checked)
-        best = max(accepted, key=lambda cw: (cw[0].verification.n_inliers * float(cw[1]),
-                                             cw[0].verification.n_inliers, cw[0].island.best_score))[0]
+        best = max(accepted, key=lambda c: (c[2], c[0].verification.n_inliers * c[1],
+                                            c[0].verification.n_inliers, c[0].island.best_score))[0]
         entry, result = best.island.best, best.verification
         for e, r in self._refine(prep, verifier, best.island, checked, result.n_inliers):
             if r.accepted and r.n_inliers > result.n_inliers:
@@ -667,24 +686,8 @@ class LoopDetector:
         self, frame: Frame, prep: PreparedFrame, limit: int = 0, vlad: np.ndarray | None = None
     ) -> None:
         t = time.perf_counter()
-        meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
-        if self.config.query.sequence >= 2 and limit > 0:  # to query it again after a reopen
-            meta["limit"] = int(limit)
-        adjacent, run_start = self._continuity
-        if math.isfinite(adjacent):
-            meta["adjacent"] = round(adjacent, 9)
-            self._adjacent = [*self._adjacent, round(adjacent, 9)][-self.config.query.run_history:]
-        if run_start:
-            meta["run"] = run_start
-        self._run_start = run_start
-        if prep.certainty is not None:
-            meta["certainty"] = prep.certainty
-        if self._window_island is not None:
-            meta.update(window_island=list(self._window_island), window_n=self._window_n,
-                        window_query=self._window_query)
+        meta = self._entry_meta(frame, prep, limit)
         xyz = None if prep.points is None else prep.points.xyz
-        if prep.points is not None and not prep.points.metric and prep.points_source is not None:
-            meta.update(relative_points_meta(prep.points, prep.points_source))
         arrays = {} if prep.weights is None else {"weights": prep.weights}
         if vlad is not None:
             arrays["vlad"] = vlad.astype(np.float16)
@@ -703,10 +706,35 @@ class LoopDetector:
             self._vlad.append(vlad, entry=len(self.db) - 1)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
+        self._sessions.append(frame.session)
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a
         # resumed run normalises scores exactly as an uninterrupted one
         self._prev_bow = BowVector(bow.words, bow.weights.astype(np.float32).astype(np.float64))
         prep.timings["add"] = (time.perf_counter() - t) * 1e3
+
+    def _entry_meta(self, frame: Frame, prep: PreparedFrame, limit: int) -> dict[str, object]:
+        """The meta stored with a frame's entry (what a reopened map restores the detector's
+        state from); keeps the run and the adjacent scores it records."""
+        meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
+        if frame.session:
+            meta["session"] = frame.session
+        if self.config.query.sequence >= 2 and limit > 0:  # to query it again after a reopen
+            meta["limit"] = int(limit)
+        adjacent, run_start = self._continuity
+        if math.isfinite(adjacent):
+            meta["adjacent"] = round(adjacent, 9)
+            self._adjacent = [*self._adjacent, round(adjacent, 9)][-self.config.query.run_history:]
+        if run_start:
+            meta["run"] = run_start
+        self._run_start = run_start
+        if prep.certainty is not None:
+            meta["certainty"] = prep.certainty
+        if self._window_island is not None:
+            meta.update(window_island=list(self._window_island), window_n=self._window_n,
+                        window_query=self._window_query)
+        if prep.points is not None and not prep.points.metric and prep.points_source is not None:
+            meta.update(relative_points_meta(prep.points, prep.points_source))
+        return meta
 
     def _query(self, bow: BowVector, frame: Frame, entry: int, vlad: np.ndarray | None = None) -> _Query:
         """Steps 3-4: the candidate and the stage that rejected it (None: verify it)."""
