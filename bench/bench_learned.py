@@ -185,8 +185,8 @@ def gardens_dataset(reference: str, query: str, dst: Path) -> Any:
     session 1 (``Frame.session``: two walks recorded apart, as the VPR-Bench reader marks its
     passes)."""
     ds = open_dataset(gardens_sequence(reference, query, dst), format="folder")
-    for rec in ds.records[PLACES:]:
-        rec.session = 1
+    for k, rec in enumerate(ds.records):
+        rec.session = int(k >= PLACES)
     return ds
 
 
@@ -966,7 +966,8 @@ def corridor_aliasing() -> dict[str, Any]:
     confident false loop, another part of the same pass), its true place ref 89, and query frame
     60; with every keypoint, and with the dark lens rim masked out (pixels under 30 or 50 joined
     to the image border, grown by 3 px). And (``second_pass_aliases``) five aliased query frames
-    against their own pass's alias, their true place and the first pass's view of the alias."""
+    against their own pass's alias, their true place and the first pass's view of the alias;
+    (``ground_truth_window``) where the inliers of four query frames peak along the first pass."""
     base = SHARED / "corridor"
     xfeat = XFeatExtractor(XFeatConfig(n_features=XFEAT_N, threads=1))
 
@@ -1015,6 +1016,14 @@ def corridor_aliasing() -> dict[str, Any]:
          "true_place_inliers": most(q, range(q - 2, q + 3)),
          "first_pass_alias_inliers": most(q, range(a - 2, a + 3))}
         for q, a in ((89, 40), (90, 41), (91, 42), (93, 42), (94, 42))]
+    # the most confident false loops left once the passes are told apart (query 26, 46 and 47
+    # against ref 29, 49 and 50: 3 places on, the ground truth's ref q-2..q+2 window ends at q+2)
+    # and query 30: the inliers against ref q-2..q+4, and where they peak
+    out["ground_truth_window"] = []
+    for q in (26, 30, 46, 47):
+        row = {r: fit(feats("query", q), feats("ref", r))["fundamental_inliers"] for r in range(q - 2, q + 5)}
+        out["ground_truth_window"].append({"query": q, "inliers_by_ref": row,
+                                           "peak_ref": max(row, key=row.__getitem__)})
     return out
 
 

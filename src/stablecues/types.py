@@ -482,13 +482,15 @@ class Frame:
             feature has no map point), or None; needs ``features``, in the same order.
         session: the recording session (traversal) the frame belongs to, an integer >= 0: a
             robot's runs on different days, the reference and the query pass of a place
-            recognition set. A loop to another session's place is preferred over one to the
-            session under way when both verify (``QueryConfig.other_sessions_first``), and a
-            new session starts a new run of frames. 0 for a single stream.
+            recognition set; stored as the map entry's session
+            (:attr:`stablecues.database.Database.session`). A loop to another session's place
+            is preferred over one to the session under way when both verify
+            (``QueryConfig.other_sessions_first``), and a new session starts a new run of
+            frames. None: the map's current session (0 unless ``Database.new_session`` moved it).
 
     Raises:
         InputError: ``features`` that are neither Features nor a well-formed pair, or a
-            ``session`` that is not an integer >= 0.
+            ``session`` that is neither None nor an integer >= 0.
     """
 
     index: int
@@ -503,13 +505,15 @@ class Frame:
     calibration_path: Path | None = None
     features: FeaturesLike | None = None
     points3d: np.ndarray | None = None
-    session: int = 0
+    session: int | None = None
 
     def __post_init__(self) -> None:
         session = self.session
-        if isinstance(session, bool) or not isinstance(session, int | np.integer) or session < 0:
-            raise InputError(f"frame {self.index}: session must be an integer >= 0, got {session!r}")
-        object.__setattr__(self, "session", int(session))
+        if session is not None:
+            if isinstance(session, bool) or not isinstance(session, int | np.integer) or session < 0:
+                raise InputError(f"frame {self.index}: session must be None or an integer >= 0, "
+                                 f"got {session!r}")
+            object.__setattr__(self, "session", int(session))
         if self.features is not None and not isinstance(self.features, Features):
             size = frame_image_size(self)
             object.__setattr__(self, "features", Features.coerce(self.features, size))

@@ -1,7 +1,7 @@
 """Sessions (``Frame.session``): a loop to another recording session's place is preferred over a
 view of the session under way when both verify (``query.other_sessions_first``), a new session
-starts a new run of frames, and a reopened map keeps each entry's session
-(``LoopDetector.next_session`` names the next)."""
+starts a new run of frames, and the map keeps each entry's session (``Database`` sessions: a frame
+without one takes the map's current session; ``LoopDetector.next_session`` names the next)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ XS = [STEP * i for i in range(9)] + [5 + STEP * 3]
 SESSIONS = [0] * 9 + [1]
 
 
-def _view(i: int, x: int, session: int) -> Frame:
+def _view(i: int, x: int, session: int | None) -> Frame:
     return Frame(index=i, name=f"{i}.png", timestamp=float(i), image=np.ascontiguousarray(PANO[:, x:x + 320]),
                  session=session)
 
@@ -81,8 +81,7 @@ def test_a_new_session_starts_a_run_and_a_reopened_map_keeps_the_sessions(tmp_pa
         det.store(_view(i, x, SESSIONS[i]))
         assert det._continuity[1] == (9 if i == 9 else 0)
     before = _choose(det, session=1)
-    metas = det.db.column("meta")
-    assert [m.get("session") for m in metas] == [None] * 9 + [1]
+    assert det.db.index.sessions().tolist() == SESSIONS  # the map's own session of each entry
     det.close()
     again = _detector(True, db)
     assert again._sessions == SESSIONS and again._run_start == 9
@@ -91,9 +90,21 @@ def test_a_new_session_starts_a_run_and_a_reopened_map_keeps_the_sessions(tmp_pa
     again.close()
 
 
+def test_a_frame_without_a_session_takes_the_maps_current_one() -> None:
+    """``Frame.session`` None: the map's session (0, then what ``Database.new_session`` gives)."""
+    det = _detector(True)
+    for i, x in enumerate(XS):
+        if i == 9:
+            assert det.db.new_session() == 1
+        det.store(_view(i, x, None))
+    assert det._sessions == SESSIONS and det._continuity[1] == 9
+    loop, _ = _choose(det, session=1)
+    assert loop == 3
+
+
 @pytest.mark.parametrize("bad", [-1, True, 1.5, "1"])
 def test_a_session_that_is_not_an_integer_ge_0_is_refused(bad: object) -> None:
-    with pytest.raises(InputError, match=r"frame 4: session must be an integer >= 0"):
+    with pytest.raises(InputError, match=r"frame 4: session must be None or an integer >= 0"):
         Frame(index=4, name="4.png", timestamp=0.0, image=np.zeros((8, 8), np.uint8), session=bad)  # type: ignore[arg-type]
     assert Frame(index=4, name="4.png", timestamp=0.0, image=np.zeros((8, 8), np.uint8),
                  session=np.int64(2)).session == 2

@@ -78,7 +78,7 @@ class FrameRecord:
     labels: Path | None = None
     pose: np.ndarray | None = None
     name: str | None = None
-    session: int = 0
+    session: int | None = None  # Frame.session: None, the map's current session
 
 
 @dataclass

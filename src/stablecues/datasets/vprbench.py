@@ -46,7 +46,7 @@ def open_vprbench(path: str | Path, *, grey: bool = False) -> SequenceDataset:
             )
     refs = list_images(root / "ref", "reference images")
     queries = list_images(root / "query", "query images")
-    records = [FrameRecord(image=p, name=f"ref/{p.name}") for p in refs]
+    records = [FrameRecord(image=p, name=f"ref/{p.name}", session=0) for p in refs]
     records += [FrameRecord(image=p, name=f"query/{p.name}", session=1) for p in queries]
     gt = root / GT_NAME
     return SequenceDataset(

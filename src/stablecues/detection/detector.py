@@ -294,9 +294,7 @@ class LoopDetector:
         metas = [m if isinstance(m, dict) else {} for m in (self.db.column("meta") if n else [])]
         present = self.db.ids() if n else np.zeros(0, np.int64)
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
-        # each entry's Frame.session (0 when not stored: a single stream, or an older map)
-        self._sessions: list[int] = [v if isinstance(v := m.get("session", 0), int)
-                                     and not isinstance(v, bool) and v >= 0 else 0 for m in metas]
+        self._sessions: list[int] = self.db.index.sessions().tolist() if n else []  # each entry's
         self._index_said = False
         self._processed = self._close_only = 0  # frames processed, and those with no older entry
         latest = int(present[-1]) if present.size else -1  # the newest entry still in the map
@@ -377,8 +375,13 @@ class LoopDetector:
     @property
     def next_session(self) -> int:
         """The :attr:`~stablecues.types.Frame.session` a new recording added to this map should
-        give its frames: one past the latest stored entry's (0 for an empty map)."""
-        return self._sessions[-1] + 1 if self._sessions else 0
+        give its frames: one past the highest stored (0 for an empty map)."""
+        return max(self._sessions) + 1 if self._sessions else 0
+
+    def _session_of(self, frame: Frame) -> int:
+        """The frame's session: its own, or (None) the map's current one (:attr:`Database.session`,
+        which :meth:`Database.new_session` moves on)."""
+        return int(self.db.session) if frame.session is None else frame.session
 
     def __enter__(self) -> LoopDetector:
         return self
@@ -464,7 +467,7 @@ class LoopDetector:
         vlad = self._vlad_of(prep)
         timings, t = prep.timings, time.perf_counter()
         entry = len(self.db)
-        self._continuity = self._continuity_of(prep.bow, frame.session)
+        self._continuity = self._continuity_of(prep.bow, self._session_of(frame))
         found = self._query(prep.bow, frame, entry, vlad)
         self._sequence.push(found.current)
         timings["query"] = (time.perf_counter() - t) * 1e3
@@ -475,7 +478,7 @@ class LoopDetector:
         checked: tuple[Checked, ...] = ()
         if status is None:
             t = time.perf_counter()
-            status, verification, checked = self._verify(prep, found, frame.session)
+            status, verification, checked = self._verify(prep, found, self._session_of(frame))
             timings["verify"] = (time.perf_counter() - t) * 1e3
         if store:
             self._store(frame, prep, limit=found.limit, vlad=vlad)
@@ -512,7 +515,7 @@ class LoopDetector:
         prep = self.preparer.prepare(frame, features)
         vlad = self._vlad_of(prep)
         entry = len(self.db)
-        self._continuity = self._continuity_of(prep.bow, frame.session)
+        self._continuity = self._continuity_of(prep.bow, self._session_of(frame))
         self._sequence.start(self._continuity[1])
         self._sequence.push(Scored.empty())  # no query: a gap in the sequence, frames stay aligned
         self._store(frame, prep, vlad=vlad)
@@ -688,6 +691,7 @@ class LoopDetector:
         t = time.perf_counter()
         meta = self._entry_meta(frame, prep, limit)
         xyz = None if prep.points is None else prep.points.xyz
+        session = self._session_of(frame)
         arrays = {} if prep.weights is None else {"weights": prep.weights}
         if vlad is not None:
             arrays["vlad"] = vlad.astype(np.float16)
@@ -697,7 +701,7 @@ class LoopDetector:
             bow, fvec = self.vocabulary.learn(self.db.stored_form(prep.features.descriptors), prep.weights)
         try:
             self.db.add(bow, fvec, prep.features, points3d=xyz, timestamp=float(frame.timestamp),
-                        pose=frame.pose, meta=meta, arrays=arrays or None)
+                        pose=frame.pose, meta=meta, arrays=arrays or None, session=session)
         except BaseException:
             if learned:  # the words learned this frame, the map did not take it: back to the map's
                 self.db.resync_words()
@@ -706,7 +710,7 @@ class LoopDetector:
             self._vlad.append(vlad, entry=len(self.db) - 1)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
-        self._sessions.append(frame.session)
+        self._sessions.append(session)
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a
         # resumed run normalises scores exactly as an uninterrupted one
         self._prev_bow = BowVector(bow.words, bow.weights.astype(np.float32).astype(np.float64))
@@ -716,8 +720,6 @@ class LoopDetector:
         """The meta stored with a frame's entry (what a reopened map restores the detector's
         state from); keeps the run and the adjacent scores it records."""
         meta: dict[str, object] = {"frame": int(frame.index), "name": frame.name}
-        if frame.session:
-            meta["session"] = frame.session
         if self.config.query.sequence >= 2 and limit > 0:  # to query it again after a reopen
             meta["limit"] = int(limit)
         adjacent, run_start = self._continuity
