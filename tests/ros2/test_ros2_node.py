@@ -245,6 +245,33 @@ def test_killed_node_restarted_continues_the_map(
     assert_same_decisions(got2.decisions, run, first=half)
 
 
+def test_a_node_restarted_with_new_session_stores_its_frames_in_another_session(
+    synbag: Path, tmp_path: Path, sessions: list[Processes]
+) -> None:
+    """A robot's second run on a kept map (``--new-session``): its frames go to session 1, the
+    first run's stay in session 0, and the map says so after both nodes exit."""
+    from stablecues.database import Database
+    from stablecues.vocabulary import default_vocabulary
+
+    run = reference(synbag, tmp_path / "run")
+    half = len(run) // 2
+    map_file = tmp_path / "map.sqlite"
+    args = ["--image", "/cam0/image_raw", "--map", str(map_file), "--new-session"]
+    first = launch(tmp_path, "s1", args, half)
+    sessions.append(first)
+    play(first, synbag, "--frames", str(half))
+    got1 = finish(first, "s1", half)
+    assert got1.summary["session"] == 0  # a new map: its first session
+    second = launch(tmp_path, "s2", args, len(run) - half)
+    sessions.append(second)
+    play(second, synbag, "--start", str(half))
+    got2 = finish(second, "s2", len(run) - half)
+    assert got2.summary["session"] == 1 and got2.summary["map_frames"] == len(run)
+    assert "session 1" in got2.log
+    with Database(default_vocabulary(), map_file) as db:
+        assert db.index.sessions().tolist() == [0] * half + [1] * (len(run) - half)
+
+
 MALFORMED = r"""
 import sys, time
 import numpy as np

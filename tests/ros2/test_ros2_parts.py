@@ -114,6 +114,7 @@ def test_the_shipped_configuration_keeps_dds_on_the_loopback_interface() -> None
         (["play", "missing_bag", "--rate", "0"], "--rate: expected a speed factor > 0"),
         (["--image", "cam/image"], "expected an absolute ROS topic name"),
         (["--map", "/nonexistent/dir/m.sqlite"], "its folder does not exist"),
+        (["--new-session"], "--new-session: needs --map"),
         (["--domain", "999"], "the domain id: expected a whole number in 0..232, got '999'"),
     ],
 )

@@ -172,6 +172,12 @@ def _node_options(p: argparse.ArgumentParser) -> None:
         type=Path,
         help="map file (SQLite), reopened and continued when it exists (default: in memory)",
     )
+    g.add_argument(
+        "--new-session",
+        action="store_true",
+        help="store this run's frames as a new session of --map (another day, another robot run): "
+        "a loop to an earlier session's place is taken before a view of this run",
+    )
     g.add_argument("--calib", metavar="FILE", help="calibration file, used when no CameraInfo is read")
     g.add_argument(
         "--set",
@@ -231,6 +237,8 @@ def _node(args: argparse.Namespace) -> int:
     did = _domain(args)
     if args.map is not None and not args.map.parent.is_dir():
         raise ConfigError(f"--map {args.map}: its folder does not exist")
+    if args.new_session and args.map is None:
+        raise ConfigError("--new-session: needs --map (an in-memory map holds one session)")
     config = NodeConfig(
         image=args.image,
         right=args.right,
@@ -258,6 +266,8 @@ def _node(args: argparse.Namespace) -> int:
     detector = LoopDetector(
         detector_config, vocabulary=vocabulary_from_args(args), database=args.map, calibration=calibration
     )
+    if args.new_session and len(detector.db):
+        detector.db.new_session()
     stop = threading.Event()
     _on_signals(stop)
     try:
@@ -269,7 +279,8 @@ def _node(args: argparse.Namespace) -> int:
 
         watcher = threading.Thread(target=on_stop, daemon=True)
         watcher.start()
-        where = f"map {args.map} ({len(detector.db)} frames)" if args.map else "an in-memory map"
+        where = (f"map {args.map} ({len(detector.db)} frames, session {detector.db.session})" if args.map
+                 else "an in-memory map")
         print(
             f"stablecues ros2: {args.preset} on {config.image}"
             + (f" + {config.right}" if config.right else "")

@@ -175,6 +175,7 @@ class NodeSummary:
         first_index: the first frame index of this session (the map's next index), -1 if none.
         last_index: the last one decided, -1 if none.
         map_frames: frames in the map at exit.
+        session: the map's session this run's frames were stored in (``--new-session``).
         cpu_s: CPU seconds of the process (user + system), all threads.
         wall_s: seconds the node ran.
         decide_ms: median milliseconds from a frame's arrival to its decision's publication.
@@ -190,6 +191,7 @@ class NodeSummary:
     first_index: int = -1
     last_index: int = -1
     map_frames: int = 0
+    session: int = 0
     cpu_s: float = 0.0
     wall_s: float = 0.0
     decide_ms: float = float("nan")
@@ -557,6 +559,7 @@ class LoopClosureNode:
         start = time.monotonic()
         cpu0 = _cpu_s()
         self.summary.first_index = -1
+        self.summary.session = int(self.detector.db.session)
         index = self.detector.next_index
         log.info("map holds %d frames; numbering on from frame %d", len(self.detector.db), index)
         receiver.start()
