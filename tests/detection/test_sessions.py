@@ -84,7 +84,7 @@ def test_a_new_session_starts_a_run_and_a_reopened_map_keeps_the_sessions(tmp_pa
     assert det.db.index.sessions().tolist() == SESSIONS  # the map's own session of each entry
     det.close()
     again = _detector(True, db)
-    assert again._sessions == SESSIONS and again._run_start == 9
+    assert again.db.index.sessions().tolist() == SESSIONS and again._run_start == 9
     assert again.next_session == 2  # a third recording added to this map
     assert _choose(again, session=1) == before
     again.close()
@@ -97,7 +97,7 @@ def test_a_frame_without_a_session_takes_the_maps_current_one() -> None:
         if i == 9:
             assert det.db.new_session() == 1
         det.store(_view(i, x, None))
-    assert det._sessions == SESSIONS and det._continuity[1] == 9
+    assert det.db.index.sessions().tolist() == SESSIONS and det._continuity[1] == 9
     loop, _ = _choose(det, session=1)
     assert loop == 3
 

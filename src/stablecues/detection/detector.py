@@ -294,7 +294,6 @@ class LoopDetector:
         metas = [m if isinstance(m, dict) else {} for m in (self.db.column("meta") if n else [])]
         present = self.db.ids() if n else np.zeros(0, np.int64)
         self._entry_frames: list[int] = [int(m.get("frame", i)) for i, m in enumerate(metas)]
-        self._sessions: list[int] = self.db.index.sessions().tolist() if n else []  # each entry's
         self._index_said = False
         self._processed = self._close_only = 0  # frames processed, and those with no older entry
         latest = int(present[-1]) if present.size else -1  # the newest entry still in the map
@@ -376,7 +375,8 @@ class LoopDetector:
     def next_session(self) -> int:
         """The :attr:`~stablecues.types.Frame.session` a new recording added to this map should
         give its frames: one past the highest stored (0 for an empty map)."""
-        return max(self._sessions) + 1 if self._sessions else 0
+        sessions = self.db.index.sessions()
+        return int(sessions.max()) + 1 if sessions.size else 0
 
     def _session_of(self, frame: Frame) -> int:
         """The frame's session: its own, or (None) the map's current one (:attr:`Database.session`,
@@ -403,7 +403,7 @@ class LoopDetector:
         if self._prev_bow is None:
             return math.nan, n
         adjacent = score(bow, self._prev_bow, self.vocabulary.scoring)
-        if self._sessions and session != self._sessions[-1]:
+        if n and session != int(self.db.index.sessions()[n - 1]):  # the latest entry's session
             return adjacent, n
         recent = self._adjacent[-q.run_history:]
         if (q.run_break is not None and len(recent) >= 2 and adjacent < q.run_break * float(np.median(recent))
@@ -559,7 +559,8 @@ class LoopDetector:
                                      tolerance=q.sequence_tolerance)
         # query.other_sessions_first: the islands of other sessions first, one of them accepted
         # is the loop and the islands of the session under way are not verified
-        other = [q.other_sessions_first and self._sessions[i.best] != session for i in islands]
+        sessions = self.db.index.sessions()  # each entry's (the map keeps them)
+        other = [q.other_sessions_first and int(sessions[i.best]) != session for i in islands]
         accepted: list[tuple[Checked, float, bool]] = []  # (what was checked, weight, other session)
         top = 0.0  # the best accepted island's rank: a candidate whose matches cannot beat it is cut short
         for k in sorted(range(len(islands)), key=lambda k: not other[k]):
@@ -710,7 +711,6 @@ class LoopDetector:
             self._vlad.append(vlad, entry=len(self.db) - 1)
         self._timestamps.append(float(frame.timestamp))
         self._entry_frames.append(int(frame.index))
-        self._sessions.append(session)
         # the database keeps float32 weights: use the same rounding now as after a reopen, so a
         # resumed run normalises scores exactly as an uninterrupted one
         self._prev_bow = BowVector(bow.words, bow.weights.astype(np.float32).astype(np.float64))
